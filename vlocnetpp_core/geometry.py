@@ -71,10 +71,17 @@ def _numpy_compatible(fn: Callable) -> Callable:
 
 @_numpy_compatible
 def quat_normalize(q: Array, eps: float = 1e-12) -> Array:
-    """Unit quaternion ``(..., 4)`` in ``(w, x, y, z)`` on the ``w >= 0`` hemisphere."""
+    """Unit quaternion ``(..., 4)`` in ``(w, x, y, z)`` on the ``w >= 0`` hemisphere.
+
+    Canonical: when ``w == 0`` the first non-zero of ``x, y, z`` is made positive, so that
+    equal rotations get equal quaternions.
+    """
     q = q / q.norm(dim=-1, keepdim=True).clamp_min(eps)
-    sign = torch.where(q[..., :1] < 0, -1.0, 1.0).to(q.dtype)
-    return q * sign
+    key = q[..., 3]
+    for i in (2, 1, 0):
+        key = torch.where(q[..., i].abs() > 1e-12, q[..., i], key)
+    q = q * torch.where(key < 0, -1.0, 1.0).to(q.dtype)[..., None]
+    return torch.cat((q[..., :1].abs(), q[..., 1:]), -1)  # only flips a |w| <= 1e-12
 
 
 @_numpy_compatible

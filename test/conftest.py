@@ -1,0 +1,54 @@
+"""Shared pytest fixtures."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _colcon() -> str:
+    exe = Path(sys.executable).parent / "colcon"
+    return str(exe) if exe.exists() else (shutil.which("colcon") or "colcon")
+
+
+@pytest.fixture(scope="session")
+def colcon_install(tmp_path_factory) -> Path:
+    """Build this repository with colcon (from PyPI) once per session; returns the install prefix.
+
+    The build runs in a temporary copy of the tracked sources so that it never touches the
+    working tree (no build/, install/, log/ left behind).
+    """
+    root = tmp_path_factory.mktemp("colcon")
+    src = root / "src" / "vlocnetpp_ros"
+    files = subprocess.run(["git", "ls-files", "-co", "--exclude-standard"], cwd=REPO, capture_output=True, text=True, check=True)
+    for rel in files.stdout.splitlines():
+        p = REPO / rel
+        if p.is_file():
+            (src / rel).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(p, src / rel)
+    env = dict(os.environ)
+    env["PATH"] = f"{Path(sys.executable).parent}:{env.get('PATH', '')}"
+    proc = subprocess.run(
+        [_colcon(), "--log-base", str(root / "log"), "build", "--base-paths", str(root / "src"),
+         "--build-base", str(root / "build"), "--install-base", str(root / "install")],
+        cwd=root, env=env, capture_output=True, text=True, timeout=600,
+    )
+    assert proc.returncode == 0, f"colcon build failed:\n{proc.stdout}\n{proc.stderr}"
+    return root / "install"
+
+
+def install_env(install: Path) -> dict[str, str]:
+    """Environment for running programs from a colcon install tree (what `source setup.bash` does for us)."""
+    env = dict(os.environ)
+    prefix = install / "vlocnetpp_ros"
+    site = next((prefix / "lib").glob("python3*/site-packages"))
+    env["PYTHONPATH"] = f"{site}:{env.get('PYTHONPATH', '')}".rstrip(":")
+    env["AMENT_PREFIX_PATH"] = f"{prefix}:{env.get('AMENT_PREFIX_PATH', '')}".rstrip(":")
+    return env
