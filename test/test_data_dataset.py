@@ -1,0 +1,74 @@
+"""ClipDataset: clips stay inside one sequence, carry the documented tensors, work with DataLoader workers."""
+
+from __future__ import annotations
+
+import pickle
+
+import numpy as np
+import pytest
+import torch
+from data_fixtures import trajectory, write_deeploc_split, write_sevenscenes
+
+from vlocnetpp_core import geometry
+from vlocnetpp_core.data import ClipDataset, make_transform, open_dataset
+
+
+@pytest.fixture(scope="module")
+def deeploc_index(tmp_path_factory):
+    root = tmp_path_factory.mktemp("clips")
+    ta, qa = trajectory(6)
+    tb, qb = trajectory(4, start=1.5)
+    write_deeploc_split(root, "train", [1, 2, 3, 4, 5, 6, 501, 502, 503, 504], np.concatenate((ta, tb)), np.concatenate((qa, qb)))
+    return open_dataset(root)
+
+
+@pytest.mark.parametrize(("clip_len", "stride", "count"), [(1, 1, 10), (3, 1, 6), (3, 2, 2), (5, 1, 2), (7, 1, 0)])
+def test_clips_stay_inside_a_sequence(deeploc_index, clip_len, stride, count):
+    ds = ClipDataset(deeploc_index, clip_len, stride=stride)
+    assert len(ds) == count
+    for i in range(len(ds)):
+        idx = ds.clip_indices(i)
+        assert len({deeploc_index.records[j].sequence for j in idx}) == 1
+        assert np.all(np.diff(idx) == stride)
+
+
+def test_clip_tensors(deeploc_index):
+    ds = ClipDataset(deeploc_index, 3, make_transform(False, (64, 48)))
+    s = ds[4]  # second sequence, records 6, 7, 8
+    assert s["index"].tolist() == [6, 7, 8] and s["sequence"].item() == 1
+    assert s["image"].shape == (3, 3, 48, 64) and s["image"].dtype == torch.float32 and 0 <= s["image"].min() <= s["image"].max() <= 1
+    assert s["depth"].shape == (3, 1, 48, 64) and s["labels"].shape == (3, 48, 64) and s["labels"].dtype == torch.int64
+    assert s["has_depth"].item() and s["has_labels"].item()
+    assert s["K"].shape == (3, 3, 3) and s["K"][0, 0, 2].item() == pytest.approx(deeploc_index.intrinsics.resized(64, 48).cx, abs=1.0)
+    np.testing.assert_allclose(s["stamp"].numpy() - s["stamp"][0].item(), [0, 0.05, 0.1])
+    assert s["rel_t"][0].abs().max() == 0 and s["rel_q"][0].tolist() == [1, 0, 0, 0]
+    r = [deeploc_index.records[j] for j in (6, 7, 8)]
+    for k in (1, 2):
+        rt, rq = geometry.relative_pose(np.array(r[k - 1].t), np.array(r[k - 1].q), np.array(r[k].t), np.array(r[k].q))
+        np.testing.assert_allclose(s["rel_t"][k].numpy(), rt, atol=1e-6)
+        np.testing.assert_allclose(s["rel_q"][k].numpy(), rq, atol=1e-6)
+        np.testing.assert_allclose(s["t"][k].numpy(), r[k].t, atol=1e-6)
+
+
+def test_absent_depth_and_labels_are_filled(tmp_path):
+    write_sevenscenes(tmp_path, {1: 3}, train=[1], test=[1])
+    (tmp_path / "seq-01/frame-000001.depth.png").unlink()
+    s = ClipDataset(open_dataset(tmp_path), 2)[0]
+    assert not s["has_depth"].item() and not s["has_labels"].item()
+    assert s["depth"][1].abs().max() == 0 and s["depth"][0].max() > 0
+    assert (s["labels"] == 255).all()
+
+
+def test_reproducible_and_picklable_for_workers(deeploc_index):
+    ds = ClipDataset(deeploc_index, 2, make_transform(True, (64, 48)))
+    torch.manual_seed(3)
+    a = ds[0]
+    torch.manual_seed(3)
+    b = ds[0]
+    assert torch.equal(a["image"], b["image"]) and torch.equal(a["K"], b["K"])
+    copy = pickle.loads(pickle.dumps(ds))
+    assert len(copy) == len(ds)
+    loader = torch.utils.data.DataLoader(ds, batch_size=4, num_workers=2, shuffle=False)
+    batches = list(loader)
+    assert sum(len(x["index"]) for x in batches) == len(ds)
+    assert batches[0]["image"].shape == (4, 2, 3, 48, 64)

@@ -1,0 +1,211 @@
+"""Clip transforms: resize, crops, photometric jitter and (segmentation-only) horizontal flip.
+
+A transform maps a clip (a list of :class:`Frame`) and a ``numpy.random.Generator`` to a new
+clip. Random parameters are drawn once per clip, so every frame of a clip gets the same crop,
+scale, jitter and flip (temporal fusion and warping need consistent frames). Every geometric
+transform updates the intrinsics, so projecting a 3D point with the new ``Frame.intrinsics``
+lands on the same image content. Images are resized with area (down) / linear (up)
+interpolation; depth and labels with exact nearest neighbour (pixel-centre aligned), so valid
+and invalid depth are never blended.
+
+Horizontal flip: a mirrored image has no rigid camera pose in the real world. :class:`HorizontalFlip`
+mirrors the world too (poses conjugated by ``M = diag(-1, 1, 1)``), which keeps relative poses,
+depth and intrinsics consistent (warping stays exact) but places the camera in a mirrored map, so
+global-pose targets become wrong. Only use it for segmentation-only training (``make_transform(...,
+flip=True)``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Sequence
+
+import cv2
+import numpy as np
+
+from vlocnetpp_core.data.sample import Frame
+
+Clip = list[Frame]
+
+
+def _nearest(arr: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Pixel-centre aligned nearest-neighbour resize (source pixel ``floor((x + 0.5) * s)``)."""
+    h, w = arr.shape[:2]
+    rows = np.minimum(((np.arange(height) + 0.5) * (h / height)).astype(np.int64), h - 1)
+    cols = np.minimum(((np.arange(width) + 0.5) * (w / width)).astype(np.int64), w - 1)
+    return arr[rows[:, None], cols[None, :]]
+
+
+def resize_frame(frame: Frame, width: int, height: int) -> Frame:
+    """Resize to ``width x height`` (aspect may change; intrinsics follow)."""
+    h, w = frame.image.shape[:2]
+    if (w, h) == (width, height):
+        return frame
+    interp = cv2.INTER_AREA if width < w and height < h else cv2.INTER_LINEAR
+    return dataclasses.replace(
+        frame,
+        image=cv2.resize(frame.image, (width, height), interpolation=interp),
+        depth=None if frame.depth is None else _nearest(frame.depth, width, height),
+        labels=None if frame.labels is None else _nearest(frame.labels, width, height),
+        intrinsics=frame.intrinsics.resized(width, height),
+    )
+
+
+def crop_frame(frame: Frame, x0: int, y0: int, width: int, height: int) -> Frame:
+    """The ``width x height`` window whose top-left pixel is ``(x0, y0)``."""
+    h, w = frame.image.shape[:2]
+    if x0 < 0 or y0 < 0 or x0 + width > w or y0 + height > h:
+        raise ValueError(f"crop {width}x{height} at ({x0}, {y0}) does not fit a {w}x{h} image")
+    win = (slice(y0, y0 + height), slice(x0, x0 + width))
+    return dataclasses.replace(
+        frame,
+        image=np.ascontiguousarray(frame.image[win]),
+        depth=None if frame.depth is None else np.ascontiguousarray(frame.depth[win]),
+        labels=None if frame.labels is None else np.ascontiguousarray(frame.labels[win]),
+        intrinsics=frame.intrinsics.cropped(x0, y0, width, height),
+    )
+
+
+def flip_frame(frame: Frame) -> Frame:
+    """Mirror left-right; the pose is conjugated by ``diag(-1, 1, 1)`` (a mirrored world, see module doc)."""
+    w, x, y, z = frame.q
+    return dataclasses.replace(
+        frame,
+        image=np.ascontiguousarray(frame.image[:, ::-1]),
+        depth=None if frame.depth is None else np.ascontiguousarray(frame.depth[:, ::-1]),
+        labels=None if frame.labels is None else np.ascontiguousarray(frame.labels[:, ::-1]),
+        intrinsics=frame.intrinsics.flipped_horizontally(),
+        t=frame.t * np.array([-1.0, 1.0, 1.0]),
+        q=np.array([w, x, -y, -z]),
+    )
+
+
+def cover_size(width: int, height: int, size: tuple[int, int], scale: float = 1.0) -> tuple[int, int]:
+    """Smallest aspect-keeping size (times ``scale`` >= 1) of a ``width x height`` image covering ``size (W, H)``."""
+    s = max(size[0] / width, size[1] / height) * scale
+    return max(size[0], round(width * s)), max(size[1], round(height * s))
+
+
+class Compose:
+    """Apply transforms in order."""
+
+    def __init__(self, transforms: Sequence):
+        self.transforms = list(transforms)
+
+    def __call__(self, clip: Clip, rng: np.random.Generator) -> Clip:
+        for t in self.transforms:
+            clip = t(clip, rng)
+        return clip
+
+    def __repr__(self) -> str:
+        return f"Compose({self.transforms})"
+
+
+@dataclasses.dataclass
+class Resize:
+    """Resize to exactly ``size (W, H)``."""
+
+    size: tuple[int, int]
+
+    def __call__(self, clip: Clip, rng: np.random.Generator) -> Clip:
+        return [resize_frame(f, *self.size) for f in clip]
+
+
+@dataclasses.dataclass
+class ResizeCover:
+    """Keep the aspect and resize so the image covers ``size (W, H)``, times a random factor in ``scale``."""
+
+    size: tuple[int, int]
+    scale: tuple[float, float] = (1.0, 1.0)
+
+    def __call__(self, clip: Clip, rng: np.random.Generator) -> Clip:
+        s = float(rng.uniform(*self.scale)) if self.scale[1] > self.scale[0] else self.scale[0]
+        h, w = clip[0].image.shape[:2]
+        return [resize_frame(f, *cover_size(w, h, self.size, s)) for f in clip]
+
+
+@dataclasses.dataclass
+class CenterCrop:
+    """Central ``size (W, H)`` window (testing)."""
+
+    size: tuple[int, int]
+
+    def __call__(self, clip: Clip, rng: np.random.Generator) -> Clip:
+        h, w = clip[0].image.shape[:2]
+        x0, y0 = (w - self.size[0]) // 2, (h - self.size[1]) // 2
+        return [crop_frame(f, x0, y0, *self.size) for f in clip]
+
+
+@dataclasses.dataclass
+class RandomCrop:
+    """A ``size (W, H)`` window at a random position, the same for every frame of the clip (training)."""
+
+    size: tuple[int, int]
+
+    def __call__(self, clip: Clip, rng: np.random.Generator) -> Clip:
+        h, w = clip[0].image.shape[:2]
+        if w < self.size[0] or h < self.size[1]:
+            raise ValueError(f"cannot crop {self.size[0]}x{self.size[1]} from a {w}x{h} image")
+        x0 = int(rng.integers(0, w - self.size[0] + 1))
+        y0 = int(rng.integers(0, h - self.size[1] + 1))
+        return [crop_frame(f, x0, y0, *self.size) for f in clip]
+
+
+@dataclasses.dataclass
+class ColorJitter:
+    """Random brightness, contrast and saturation factors in ``[1 - a, 1 + a]`` (one draw per clip)."""
+
+    brightness: float = 0.2
+    contrast: float = 0.2
+    saturation: float = 0.2
+
+    def __call__(self, clip: Clip, rng: np.random.Generator) -> Clip:
+        b, c, s = (float(rng.uniform(1 - a, 1 + a)) for a in (self.brightness, self.contrast, self.saturation))
+        return [dataclasses.replace(f, image=jitter_image(f.image, b, c, s)) for f in clip]
+
+
+def jitter_image(image: np.ndarray, brightness: float, contrast: float, saturation: float) -> np.ndarray:
+    """``(H, W, 3) uint8`` RGB scaled in brightness, then contrast about the mean grey, then saturation."""
+    img = image.astype(np.float32) * brightness
+    grey = img @ np.array([0.299, 0.587, 0.114], dtype=np.float32)
+    img = (img - grey.mean()) * contrast + grey.mean()
+    grey = img @ np.array([0.299, 0.587, 0.114], dtype=np.float32)
+    img = grey[..., None] + (img - grey[..., None]) * saturation
+    return np.clip(img + 0.5, 0, 255).astype(np.uint8)
+
+
+@dataclasses.dataclass
+class HorizontalFlip:
+    """Mirror the whole clip with probability ``p``. Segmentation-only training (see module doc)."""
+
+    p: float = 0.5
+
+    def __call__(self, clip: Clip, rng: np.random.Generator) -> Clip:
+        return [flip_frame(f) for f in clip] if rng.random() < self.p else clip
+
+
+def make_transform(
+    train: bool,
+    size: tuple[int, int],
+    scale: tuple[float, float] = (1.0, 1.15),
+    brightness: float = 0.2,
+    contrast: float = 0.2,
+    saturation: float = 0.2,
+    flip: bool = False,
+) -> Compose:
+    """The standard pipeline to network input ``size (W, H)``.
+
+    Test: resize to cover ``size`` keeping the aspect, centre crop. Train: resize to cover ``size``
+    times a random factor in ``scale``, random crop, photometric jitter, and a horizontal flip
+    when ``flip`` (segmentation-only training: it breaks global poses).
+    """
+    size = (int(size[0]), int(size[1]))
+    if not train:
+        return Compose([ResizeCover(size), CenterCrop(size)])
+    if not (1.0 <= scale[0] <= scale[1]) or not math.isfinite(scale[1]):
+        raise ValueError(f"scale must be a range (lo, hi) with 1 <= lo <= hi, got {scale}")
+    ts = [ResizeCover(size, scale), RandomCrop(size), ColorJitter(brightness, contrast, saturation)]
+    if flip:
+        ts.append(HorizontalFlip(0.5))
+    return Compose(ts)
