@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from vlocnetpp_core import geometry
+from vlocnetpp_core.data.pfm import write_pfm
 from vlocnetpp_core.intrinsics import Intrinsics
 
 PLANE_Z = 8.0
@@ -56,26 +57,6 @@ def write_png(path: Path, rgb: np.ndarray, alpha: bool = False) -> None:
     assert cv2.imwrite(str(path), bgr)
 
 
-def write_pfm_local(path: Path, arr: np.ndarray) -> None:
-    """Minimal little-endian greyscale PFM writer (rows bottom to top), for tests only."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    h, w = arr.shape
-    with open(path, "wb") as f:
-        f.write(f"Pf\n{w} {h}\n-1.0\n".encode())
-        f.write(np.ascontiguousarray(arr[::-1], dtype="<f4").tobytes())
-
-
-def write_pfm(path: Path, arr: np.ndarray) -> None:
-    """The project's PFM writer when it exists, the local one before."""
-    try:
-        from vlocnetpp_core.data.pfm import write_pfm as project_write_pfm
-    except ImportError:
-        write_pfm_local(path, arr)
-    else:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        project_write_pfm(path, arr)
-
-
 def write_depth_png_mm(path: Path, depth: np.ndarray) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     assert cv2.imwrite(str(path), np.round(depth * 1000).astype(np.uint16))
@@ -114,6 +95,7 @@ def write_deeploc_split(
             write_depth_png_mm(root / "DeepLoc_stereo" / split / "DepthImages" / f"Image_{n}.png", d)
             d = np.round(d * 1000).astype(np.float32) / 1000
         elif depth == "pfm":
+            (root / "DeepLoc_stereo" / split / "DepthImages").mkdir(parents=True, exist_ok=True)
             write_pfm(root / "DeepLoc_stereo" / split / "DepthImages" / f"Image_{n}.pfm", d)
         qq = q[k] if k % 2 == 0 else -q[k]
         qcols = qq if order == "wxyz" else qq[[1, 2, 3, 0]]

@@ -7,11 +7,13 @@ import shutil
 
 import numpy as np
 import pytest
-from data_fixtures import K_SMALL, trajectory, write_deeploc_split, write_pfm, write_sevenscenes
+from data_fixtures import K_SMALL, trajectory, write_deeploc_split, write_sevenscenes
 
 from vlocnetpp_core import geometry
 from vlocnetpp_core.data import open_dataset, read_deeploc, read_sevenscenes
+from vlocnetpp_core.data.pfm import write_pfm
 from vlocnetpp_core.data.sample import SEQUENCE_GAP_S
+from vlocnetpp_core.errors import DataError
 from vlocnetpp_core.intrinsics import DEEPLOC_DEFAULT, SEVEN_SCENES_DEFAULT, Intrinsics
 
 # Two loops merged in one folder: ids 8..13 (unpadded, so "10" < "8" lexicographically) and 10001..10004.
@@ -136,12 +138,15 @@ def test_open_dataset_detects_format(tmp_path):
     assert open_dataset(tmp_path / "7s", format="7-Scenes").format == "7scenes"
 
 
-def test_local_pfm_helper_matches_reader(tmp_path):
-    """The PFM the tests write is what the project's reader reads (orientation included)."""
+def test_pfm_depth_invalid_values_become_zero(tmp_path):
     from vlocnetpp_core.data.imageio import read_depth
 
     d = np.arange(12, dtype=np.float32).reshape(3, 4) + 1
-    d[0, 0] = np.nan
+    d[0, 0], d[0, 1], d[2, 3] = np.nan, -2.0, np.inf
     write_pfm(tmp_path / "d.pfm", d)
     out = read_depth(tmp_path / "d.pfm", (3, 4))
-    assert out[0, 0] == 0 and np.array_equal(out.ravel()[1:], d.ravel()[1:])
+    assert out.dtype == np.float32 and out[0, 0] == out[0, 1] == out[2, 3] == 0
+    np.testing.assert_array_equal(out[1], d[1])
+    (tmp_path / "t.pfm").write_bytes((tmp_path / "d.pfm").read_bytes()[:-8])
+    with pytest.raises(DataError, match=r"t\.pfm: truncated PFM data"):
+        read_depth(tmp_path / "t.pfm", (3, 4))

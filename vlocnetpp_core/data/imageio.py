@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 
 from vlocnetpp_core.classes import IGNORE_INDEX, NUM_CLASSES
+from vlocnetpp_core.data.pfm import read_pfm
 from vlocnetpp_core.errors import DataError
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".ppm", ".tif", ".tiff")
@@ -74,14 +75,7 @@ def read_depth(path: str | Path, shape: tuple[int, int] | None = None) -> np.nda
     if p.suffix.lower() == ".pfm":
         if not p.is_file():
             raise DataError(p, "depth file not found")
-        from vlocnetpp_core.data.pfm import read_pfm
-
-        try:
-            depth = np.asarray(read_pfm(p), dtype=np.float32)
-        except DataError:
-            raise
-        except (ValueError, OSError) as err:
-            raise DataError(p, f"cannot decode PFM depth: {err}") from err
+        depth = read_pfm(p)  # DataError naming the file on a bad header or truncated data
         if depth.ndim == 3 and depth.shape[2] == 1:
             depth = depth[..., 0]
         if depth.ndim != 2:
