@@ -88,13 +88,6 @@ class DatasetIndex:
     def has_labels(self) -> bool:
         return any(r.labels is not None for r in self.records)
 
-    def sequence_of(self, i: int) -> int:
-        """Position in ``sequences`` of the range holding record ``i``."""
-        for k, rng in enumerate(self.sequences):
-            if i in rng:
-                return k
-        raise IndexError(i)
-
     def load(self, i: int) -> Frame:
         """Decode record ``i``. Raises ``DataError`` naming the file on unreadable or inconsistent data."""
         r = self.records[i]
