@@ -1,0 +1,173 @@
+"""``vlocnetpp convert`` (alias ``convert-deeploc``): a DeepLoc / 7-Scenes split as a ROS 2 Jazzy MCAP bag.
+
+Topics (every message of a frame has the frame's stamp; image frames are ``camera``):
+
+=============================== =========================== ==========================================
+``/camera/image_raw``           ``sensor_msgs/Image``       ``rgb8`` (without ``--compress``)
+``/camera/image_raw/compressed`` ``sensor_msgs/CompressedImage`` PNG or JPEG (``--compress png|jpeg``)
+``/camera/depth/image_raw``     ``sensor_msgs/Image``       ``32FC1`` metres, 0 = invalid (when depth exists)
+``/camera/camera_info``         ``sensor_msgs/CameraInfo``  pinhole ``K``/``P``, zero distortion
+``/camera/semantic``            ``sensor_msgs/Image``       ``mono8`` class ids, 255 = ignore (when labels exist)
+``/ground_truth/pose``          ``geometry_msgs/PoseStamped`` ``T_wc`` in ``map``
+=============================== =========================== ==========================================
+
+Stamps: the frames of a sequence are ``1 / --rate`` apart (default 20 Hz DeepLoc, 30 Hz 7-Scenes)
+starting at 0 s, and each sequence starts :data:`vlocnetpp_core.data.sample.SEQUENCE_GAP_S` (10 s) after the previous one
+ends, longer than the node's ``max_gap_s``, so a replay resets the temporal state between loops.
+With ``--split all`` the test split follows the train split the same way.
+
+The conversion streams: one frame is decoded, written and freed at a time (memory does not grow
+with the dataset). The bag is written to a hidden temporary folder and renamed into place when
+complete (see :mod:`vlocnetpp_core.bag.bagfile`); an error, Ctrl-C or SIGTERM leaves nothing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from vlocnetpp_core.bag import messages
+from vlocnetpp_core.bag.bagfile import BagWriter, sigterm_as_interrupt
+from vlocnetpp_core.data.sample import DatasetIndex, sequence_stamps
+from vlocnetpp_core.errors import DataError, UserError
+
+CAMERA_FRAME = "camera"
+MAP_FRAME = "map"
+IMAGE_TOPIC = "/camera/image_raw"
+COMPRESSED_TOPIC = "/camera/image_raw/compressed"
+DEPTH_TOPIC = "/camera/depth/image_raw"
+CAMERA_INFO_TOPIC = "/camera/camera_info"
+SEMANTIC_TOPIC = "/camera/semantic"
+GROUND_TRUTH_TOPIC = "/ground_truth/pose"
+DEFAULT_RATE_HZ = {"deeploc": 20.0, "7scenes": 30.0}
+
+
+@dataclass
+class ConvertSummary:
+    """What :func:`convert` wrote: ``frames``, messages per topic, file ``size_bytes``, bag ``duration_s`` and ``wall_s``."""
+
+    path: Path
+    frames: int
+    topics: dict[str, int] = field(default_factory=dict)
+    size_bytes: int = 0
+    duration_s: float = 0.0
+    wall_s: float = 0.0
+
+    def format(self) -> str:
+        lines = [f"wrote {self.path}: {self.frames} frames, {self.size_bytes / 2**20:.1f} MiB, "
+                 f"{self.duration_s:.1f} s of bag time, in {self.wall_s:.1f} s ({self.frames / max(self.wall_s, 1e-9):.1f} frames/s)"]
+        lines += [f"  {topic:<32} {count} messages" for topic, count in self.topics.items()]
+        return "\n".join(lines)
+
+
+def frame_stamps(indexes: list[DatasetIndex], rate_hz: float) -> list[float]:
+    """One stamp per record of ``indexes`` (in order): sequences at ``rate_hz`` laid end to end with
+    :data:`~vlocnetpp_core.data.sample.SEQUENCE_GAP_S` between them, over all the given splits."""
+    lengths = [len(r) for index in indexes for r in index.sequences]
+    return [float(s) for seq in sequence_stamps(lengths, rate_hz) for s in seq]
+
+
+def check_listed_images(index: DatasetIndex) -> None:
+    """DeepLoc: every image named in ``poses.txt`` must exist (the reader skips missing ones; the converter
+    refuses, naming the first missing file)."""
+    if index.format != "deeploc":
+        return
+    from vlocnetpp_core.data.deeploc import find_deeploc_root, frame_number, read_poses
+
+    split_dir = find_deeploc_root(index.root)[0] / index.split
+    present = {frame_number(Path(r.image).name) for r in index.records}
+    for n, name, _, _ in read_poses(split_dir / "poses.txt"):
+        if n not in present:
+            missing = split_dir / "LeftImages" / (name if Path(name).suffix else f"{name}.png")
+            raise DataError(missing, f"image listed in {split_dir / 'poses.txt'} not found (use --skip-missing to leave such poses out)")
+
+
+def convert(indexes: list[DatasetIndex], out: str | Path, compress: str | None = None, rate_hz: float | None = None,
+            force: bool = False, progress: bool = True) -> ConvertSummary:
+    """Write the records of ``indexes`` (one or more splits, in order) as the bag ``out`` (see module doc).
+
+    ``compress``: None (raw ``rgb8``), ``"png"`` or ``"jpeg"``. ``rate_hz``: None for the format's rate.
+    """
+    from tqdm import tqdm
+
+    if not indexes:
+        raise UserError("nothing to convert")
+    rate = rate_hz if rate_hz is not None else DEFAULT_RATE_HZ.get(indexes[0].format, 20.0)
+    if not (math.isfinite(rate) and rate > 0):
+        raise UserError(f"--rate must be a positive number of Hz, got {rate}")
+    if compress not in (None, "png", "jpeg"):
+        raise UserError(f"--compress must be png or jpeg, got {compress!r}")
+    stamps = frame_stamps(indexes, rate)
+    frames = [(index, i) for index in indexes for i in range(len(index))]
+    image_topic = IMAGE_TOPIC if compress is None else COMPRESSED_TOPIC
+    start = time.perf_counter()
+    writer = BagWriter(out, force=force)
+    with sigterm_as_interrupt(), writer, tqdm(total=len(frames), unit="frame", desc="convert", disable=not progress, file=sys.stderr) as bar:
+        writer.add_topic(CAMERA_INFO_TOPIC, messages.CAMERA_INFO)
+        writer.add_topic(image_topic, messages.IMAGE if compress is None else messages.COMPRESSED_IMAGE)
+        if any(index.has_depth for index in indexes):
+            writer.add_topic(DEPTH_TOPIC, messages.IMAGE)
+        if any(index.has_labels for index in indexes):
+            writer.add_topic(SEMANTIC_TOPIC, messages.IMAGE)
+        writer.add_topic(GROUND_TRUTH_TOPIC, messages.POSE_STAMPED)
+        for (index, i), stamp in zip(frames, stamps, strict=True):
+            frame = index.load(i)
+            ns = messages.seconds_to_ns(stamp)
+            writer.write(CAMERA_INFO_TOPIC, ns, messages.camera_info(ns, CAMERA_FRAME, frame.intrinsics))
+            if compress is None:
+                writer.write(image_topic, ns, messages.image(ns, CAMERA_FRAME, frame.image, "rgb8"))
+            else:
+                writer.write(image_topic, ns, messages.compressed_image(ns, CAMERA_FRAME, frame.image, compress))
+            if frame.depth is not None:
+                writer.write(DEPTH_TOPIC, ns, messages.image(ns, CAMERA_FRAME, frame.depth, "32FC1"))
+            if frame.labels is not None:
+                writer.write(SEMANTIC_TOPIC, ns, messages.image(ns, CAMERA_FRAME, frame.labels, "mono8"))
+            writer.write(GROUND_TRUTH_TOPIC, ns, messages.pose_stamped(ns, MAP_FRAME, frame.t, frame.q))
+            del frame
+            bar.update(1)
+    return ConvertSummary(
+        path=Path(out), frames=len(frames), topics=dict(writer.counts), size_bytes=Path(out).stat().st_size,
+        duration_s=(stamps[-1] - stamps[0]) if stamps else 0.0, wall_s=time.perf_counter() - start,
+    )
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("dataset", metavar="DIR", help="dataset folder (DeepLoc layout or a 7-Scenes scene)")
+    p.add_argument("out", metavar="OUT.mcap", help="output bag: one MCAP file (ROS 2 Jazzy types)")
+    p.add_argument("--format", choices=("deeploc", "7scenes"), default=None, help="dataset format (default: detected from the layout)")
+    p.add_argument("--split", choices=("train", "test", "all"), default="test", help="split to convert; 'all' = train then test (default: test)")
+    p.add_argument("--compress", nargs="?", const="png", choices=("png", "jpeg"), default=None,
+                   help="write /camera/image_raw/compressed (PNG, or JPEG quality 95) instead of raw rgb8 /camera/image_raw")
+    p.add_argument("--rate", type=float, default=None, metavar="HZ", help="frame rate of the stamps (default 20 Hz DeepLoc, 30 Hz 7-Scenes)")
+    p.add_argument("--intrinsics", default=None, metavar="FX,FY,CX,CY", help="camera intrinsics at the dataset image size (default: the reader's)")
+    p.add_argument("--skip-missing", action="store_true", help="leave out poses whose image is missing instead of stopping")
+    p.add_argument("--force", action="store_true", help="replace OUT.mcap if it exists")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def run(args: argparse.Namespace) -> int:
+    from vlocnetpp_core.data import open_dataset
+    from vlocnetpp_core.data.dataset import available_splits, detect_format
+
+    fmt = args.format or detect_format(args.dataset)
+    if args.split == "all":
+        splits = available_splits(args.dataset, fmt)
+        if not splits:
+            raise DataError(args.dataset, "no train or test split found")
+    else:
+        splits = [args.split]
+    if Path(args.out).exists() and not args.force:
+        raise UserError(f"{args.out}: exists already (use --force to replace it)")
+    indexes = [open_dataset(args.dataset, fmt, split, args.intrinsics) for split in splits]
+    for index in indexes:
+        for note in index.notes:
+            print(f"note: {note}", file=sys.stderr)
+        if not args.skip_missing:
+            check_listed_images(index)
+    summary = convert(indexes, args.out, args.compress, args.rate, args.force, progress=not args.no_progress)
+    print(summary.format())
+    return 0
