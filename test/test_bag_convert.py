@@ -24,6 +24,7 @@ from vlocnetpp_core.cli import main
 from vlocnetpp_core.data import open_dataset
 from vlocnetpp_core.data.sample import SEQUENCE_GAP_S
 from vlocnetpp_core.intrinsics import Intrinsics
+from vlocnetpp_core.preprocess import FrameError
 
 REPO = Path(__file__).resolve().parents[1]
 LOOP_A, LOOP_B = list(range(1, 9)), list(range(101, 106))  # two loops of one split (id gap -> two sequences)
@@ -315,5 +316,5 @@ def test_image_messages_roundtrip_with_row_padding_and_big_endian():
     np.testing.assert_array_equal(messages.image_to_array(back), depth)
     truncated = messages.TYPESTORE.types[messages.IMAGE](header=msg.header, height=5, width=7, encoding="rgb8", is_bigendian=0, step=21,
                                                          data=np.zeros(50, np.uint8))
-    with pytest.raises(messages.MessageError, match="bytes"):
+    with pytest.raises(FrameError, match="bytes"):
         messages.image_to_array(truncated)

@@ -15,6 +15,7 @@ import cv2
 import numpy as np
 from rosbags.typesys import Stores, get_typestore
 
+from vlocnetpp_core import preprocess
 from vlocnetpp_core.intrinsics import Intrinsics
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
@@ -26,23 +27,15 @@ CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
 ODOMETRY = "nav_msgs/msg/Odometry"
 
-# Channels and numpy dtypes of the encodings we read and write (sensor_msgs/image_encodings.hpp).
-ENCODINGS: dict[str, tuple[int, np.dtype]] = {
+# Encodings :func:`image` writes: channels and numpy dtype (reading accepts every encoding of
+# ``vlocnetpp_core.preprocess``, the decoder the node uses too).
+WRITE_ENCODINGS: dict[str, tuple[int, np.dtype]] = {
     "rgb8": (3, np.dtype(np.uint8)),
     "bgr8": (3, np.dtype(np.uint8)),
-    "rgba8": (4, np.dtype(np.uint8)),
-    "bgra8": (4, np.dtype(np.uint8)),
     "mono8": (1, np.dtype(np.uint8)),
-    "8UC1": (1, np.dtype(np.uint8)),
-    "8UC3": (3, np.dtype(np.uint8)),
-    "mono16": (1, np.dtype(np.uint16)),
     "16UC1": (1, np.dtype(np.uint16)),
     "32FC1": (1, np.dtype(np.float32)),
 }
-
-
-class MessageError(ValueError):
-    """A message that cannot be turned into an array (unknown encoding, truncated data, ...)."""
 
 
 def seconds_to_ns(stamp: float) -> int:
@@ -70,13 +63,13 @@ def header(ns: int, frame_id: str) -> Any:
 
 def image(ns: int, frame_id: str, array: np.ndarray, encoding: str) -> Any:
     """``sensor_msgs/Image`` of ``array`` ((H, W) or (H, W, C), little-endian, no row padding)."""
-    if encoding not in ENCODINGS:
-        raise MessageError(f"unsupported image encoding {encoding!r}; expected one of {', '.join(ENCODINGS)}")
-    channels, dtype = ENCODINGS[encoding]
+    if encoding not in WRITE_ENCODINGS:
+        raise ValueError(f"cannot write encoding {encoding!r}; expected one of {', '.join(WRITE_ENCODINGS)}")
+    channels, dtype = WRITE_ENCODINGS[encoding]
     a = np.ascontiguousarray(array, dtype=dtype.newbyteorder("<"))
     fits = a.shape[2:] in ((), (1,)) if channels == 1 else a.shape[2:] == (channels,)
     if a.ndim not in (2, 3) or not fits:
-        raise MessageError(f"array of shape {a.shape} does not fit encoding {encoding} ({channels} channels)")
+        raise ValueError(f"array of shape {a.shape} does not fit encoding {encoding} ({channels} channels)")
     h, w = a.shape[:2]
     return _T[IMAGE](
         header=header(ns, frame_id), height=h, width=w, encoding=encoding, is_bigendian=0,
@@ -86,30 +79,14 @@ def image(ns: int, frame_id: str, array: np.ndarray, encoding: str) -> Any:
 
 def image_to_array(msg: Any) -> np.ndarray:
     """The pixels of a ``sensor_msgs/Image``: ``(H, W)`` for one channel, else ``(H, W, C)``, in the
-    message's own channel order and dtype (``rgb8`` stays RGB, ``bgr8`` stays BGR). Row padding
-    (``step`` larger than a row) and big-endian data are handled; a copy is returned."""
-    if msg.encoding not in ENCODINGS:
-        raise MessageError(f"unsupported image encoding {msg.encoding!r}; expected one of {', '.join(ENCODINGS)}")
-    channels, dtype = ENCODINGS[msg.encoding]
-    h, w, step = int(msg.height), int(msg.width), int(msg.step)
-    row = w * channels * dtype.itemsize
-    data = np.asarray(msg.data, dtype=np.uint8)
-    if step < row or data.size < step * h:
-        raise MessageError(f"{msg.encoding} image {w}x{h}: step {step} and {data.size} data bytes, expected step >= {row} and {row * h} bytes")
-    rows = data[: step * h].reshape(h, step)[:, :row]
-    out = np.ascontiguousarray(rows).view(dtype.newbyteorder(">" if msg.is_bigendian else "<")).astype(dtype)
-    return out.reshape(h, w) if channels == 1 else out.reshape(h, w, channels)
+    message's own channel order and dtype (a copy; row padding and big-endian data handled by
+    :func:`vlocnetpp_core.preprocess.decode_raw`, which raises ``FrameError``)."""
+    return preprocess.decode_raw(msg.data, msg.width, msg.height, msg.step, msg.encoding, bool(msg.is_bigendian))
 
 
 def image_to_rgb(msg: Any) -> np.ndarray:
     """``(H, W, 3) uint8`` RGB of an 8-bit colour or grey ``sensor_msgs/Image``."""
-    a = image_to_array(msg)
-    if a.dtype != np.uint8:
-        raise MessageError(f"expected an 8-bit colour image, got {msg.encoding}")
-    conversions = {"rgb8": None, "8UC3": None, "bgr8": cv2.COLOR_BGR2RGB, "rgba8": cv2.COLOR_RGBA2RGB,
-                   "bgra8": cv2.COLOR_BGRA2RGB, "mono8": cv2.COLOR_GRAY2RGB, "8UC1": cv2.COLOR_GRAY2RGB}
-    code = conversions[msg.encoding]
-    return a if code is None else cv2.cvtColor(a, code)
+    return preprocess.to_rgb(image_to_array(msg), msg.encoding)
 
 
 def compressed_image(ns: int, frame_id: str, rgb: np.ndarray, fmt: str = "png", jpeg_quality: int = 95) -> Any:
@@ -119,20 +96,17 @@ def compressed_image(ns: int, frame_id: str, rgb: np.ndarray, fmt: str = "png", 
     (the file holds ordinary colour, which every PNG/JPEG decoder returns correctly).
     """
     if fmt not in ("png", "jpeg"):
-        raise MessageError(f"compression must be 'png' or 'jpeg', got {fmt!r}")
+        raise ValueError(f"compression must be 'png' or 'jpeg', got {fmt!r}")
     params = [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)] if fmt == "jpeg" else [cv2.IMWRITE_PNG_COMPRESSION, 1]
     ok, buf = cv2.imencode(".png" if fmt == "png" else ".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), params)
     if not ok:
-        raise MessageError(f"cv2 could not encode a {rgb.shape} image as {fmt}")
+        raise ValueError(f"cv2 could not encode a {rgb.shape} image as {fmt}")
     return _T[COMPRESSED_IMAGE](header=header(ns, frame_id), format=f"rgb8; {fmt} compressed bgr8", data=buf.reshape(-1))
 
 
 def compressed_to_rgb(msg: Any) -> np.ndarray:
     """``(H, W, 3) uint8`` RGB of a PNG or JPEG ``sensor_msgs/CompressedImage``."""
-    bgr = cv2.imdecode(np.asarray(msg.data, dtype=np.uint8), cv2.IMREAD_COLOR)
-    if bgr is None:
-        raise MessageError(f"cannot decode compressed image (format {msg.format!r})")
-    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+    return preprocess.decode_compressed(msg.data)
 
 
 def any_image_to_rgb(msg: Any) -> np.ndarray:
