@@ -156,8 +156,8 @@ def read_deeploc(
     intrinsics: Intrinsics | str | None = None,
     quaternion_order: str = "wxyz",
     max_id_gap: int = 10,
-    max_jump_m: float = 2.0,
-    max_jump_deg: float = 30.0,
+    max_jump_m: float = 5.0,
+    max_jump_deg: float = 45.0,
 ) -> DatasetIndex:
     """Index the ``split`` (``train`` / ``test``) of the DeepLoc dataset at ``path`` (see module doc)."""
     deeploc_dir, root = find_deeploc_root(path)
