@@ -111,4 +111,5 @@ def read_sevenscenes(path: str | Path, split: str = "train", intrinsics: Intrins
     h, w = imageio.read_rgb(records[0].image).shape[:2]
     K = resolve_intrinsics(intrinsics, SEVEN_SCENES_DEFAULT, w, h)
     source = "given" if intrinsics is not None else "default (7-Scenes focal 585, centre (320, 240))"
-    return DatasetIndex("7scenes", root, split, records, sequences, K, source)
+    notes = ["depth is not registered to the colour camera: warping with it is approximate"] if any(r.depth for r in records) else []
+    return DatasetIndex("7scenes", root, split, records, sequences, K, source, notes)
