@@ -1,0 +1,203 @@
+"""Streaming VLocNet++ inference, one camera frame at a time (no ROS): the one code path of the
+ROS node, ``vlocnetpp evaluate`` and bag replay, so offline and online results are identical.
+
+Per frame (:meth:`Localizer.step`):
+
+* The image (any size, one of :data:`~vlocnetpp_core.preprocess.IMAGE_ENCODINGS`) is resized to
+  the network input size of the checkpoint, anisotropically when the aspect ratio differs (no
+  crop), with the intrinsics scaled by :meth:`Intrinsics.resized`. Intrinsics given with the frame
+  describe the camera image (any resolution with the same field of view); without them the
+  checkpoint's default intrinsics (at network input size) are used.
+* The model runs one streaming step, fusing the previous frame's Res5a, odometry Res4 and
+  semantic Res4f / Res5c features kept from the last call (the model's ``StreamState``) instead
+  of recomputing the previous frame.
+* Outputs: global pose ``T_map,cam``; relative pose ``T_rel = T_{k-1}^{-1} T_k``; accumulated
+  odometry ``T_odom,k = T_odom,k-1 T_rel,k`` (identity at construction, in the ``odom`` frame);
+  twist = relative motion / dt in the current camera frame (linear ``R_rel^T t_rel / dt`` m/s,
+  angular = rotation vector of ``R_rel`` / dt rad/s); 6x6 covariances from the checkpoint
+  calibration; the class-id mask at the resolution of the given image (argmax at network
+  resolution, brought back with exact nearest neighbour).
+
+Temporal state is reset (the next frame is a first frame: global pose from the image alone,
+relative pose identity, odometry holds where it was, twist zero with unknown covariance) at
+start, on :meth:`Localizer.reset`, when the stamp does not increase, when the gap to the
+previous frame exceeds ``max_gap_s``, when the image resolution or the intrinsics change, and
+after a frame rejected for non-finite network outputs. The result names the reason in
+``reset_reason`` (``None`` when the frame continued the stream).
+
+Covariances (ROS order x, y, z, rotation about x, y, z; variances floored at
+:data:`MIN_VARIANCE` so no covariance is ever all zeros): global pose = the calibration's
+``pose_variance``; odometry pose = ``odometry_variance`` times (1 + the number of relative
+motions accumulated), a random walk; twist = ``odometry_variance / dt^2``, or
+:data:`UNKNOWN_VARIANCE` on a first frame.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from vlocnetpp_core import geometry
+from vlocnetpp_core.checkpoint import calibration_variances, load_checkpoint
+from vlocnetpp_core.errors import UserError
+from vlocnetpp_core.intrinsics import Intrinsics
+from vlocnetpp_core.preprocess import FrameError, network_input, to_rgb
+
+RESET_REASONS = ("start", "request", "stamp_backwards", "gap", "resolution_change", "intrinsics_change", "nan_output")
+MIN_VARIANCE = 1e-6
+UNKNOWN_VARIANCE = 1e6
+_IDENTITY_T = np.zeros(3)
+_IDENTITY_Q = np.array([1.0, 0.0, 0.0, 0.0])
+
+
+@dataclass
+class LocalizerResult:
+    """One frame's outputs. Poses are ``t (3,)`` metres and ``q (4,)`` ``(w, x, y, z)``, float64."""
+
+    stamp: float  # seconds, as given
+    t: np.ndarray  # global pose T_map,cam
+    q: np.ndarray
+    rel_t: np.ndarray  # T_rel = T_{k-1}^{-1} T_k (identity on a first frame)
+    rel_q: np.ndarray
+    odom_t: np.ndarray  # T_odom,cam accumulated from the relative poses
+    odom_q: np.ndarray
+    linear: np.ndarray  # (3,) m/s in the current camera frame
+    angular: np.ndarray  # (3,) rad/s in the current camera frame
+    dt: float  # seconds since the previous frame (0 on a first frame)
+    pose_covariance: np.ndarray  # (6, 6) of the global pose
+    odom_covariance: np.ndarray  # (6, 6) of the odometry pose
+    twist_covariance: np.ndarray  # (6, 6)
+    mask: np.ndarray  # (H, W) uint8 class ids at the resolution of the given image
+    reset_reason: str | None  # why the temporal state was reset before this frame, None when it was not
+    seconds: float  # wall time of the step
+
+
+class Localizer:
+    """Streaming inference with temporal state. Build with :meth:`from_checkpoint`."""
+
+    def __init__(self, model: torch.nn.Module, meta: dict, device: str | torch.device = "cpu", max_gap_s: float = 1.0,
+                 num_threads: int | None = None):
+        if num_threads:
+            torch.set_num_threads(int(num_threads))
+        self.device = torch.device(device)
+        self.model = model.to(self.device).eval()
+        self.meta = meta
+        self.max_gap_s = float(max_gap_s)
+        self.input_size: tuple[int, int] = tuple(model.config.input_size)  # (W, H)
+        self.num_classes: int = model.config.num_classes
+        self.class_names: list[str] = list(meta.get("class_names", []))
+        self.default_intrinsics = Intrinsics.from_dict(meta["intrinsics"]).resized(*self.input_size)
+        pose_var, odo_var = calibration_variances(meta)
+        self.pose_variance = np.maximum(pose_var, MIN_VARIANCE)
+        self.odometry_variance = np.maximum(odo_var, MIN_VARIANCE)
+        self._odom_t, self._odom_q = _IDENTITY_T.copy(), _IDENTITY_Q.copy()
+        self._odom_steps = 0
+        self.reset("start")
+
+    @classmethod
+    def from_checkpoint(cls, path: str | Path, device: str = "cpu", max_gap_s: float = 1.0, num_threads: int | None = None) -> Localizer:
+        """Load ``NAME.safetensors`` + ``NAME.json`` (see :mod:`vlocnetpp_core.checkpoint`)."""
+        if str(device).startswith("cuda") and not torch.cuda.is_available():
+            raise UserError(f"device {device!r} requested but CUDA is not available (use device 'cpu')")
+        model, meta = load_checkpoint(path, device=device)
+        return cls(model, meta, device=device, max_gap_s=max_gap_s, num_threads=num_threads)
+
+    def reset(self, reason: str = "request", clear_odometry: bool = False) -> None:
+        """Forget the temporal state; the next frame is a first frame reported with ``reason``.
+        ``clear_odometry`` also moves the accumulated odometry back to identity."""
+        self._state = None
+        self._pending_reset = reason
+        self._prev_stamp: float | None = None
+        self._prev_shape: tuple[int, int] | None = None
+        self._prev_intrinsics: Intrinsics | None = None
+        if clear_odometry:
+            self._odom_t, self._odom_q = _IDENTITY_T.copy(), _IDENTITY_Q.copy()
+            self._odom_steps = 0
+
+    def step(self, image: np.ndarray, encoding: str, stamp: float, depth: np.ndarray | None = None,
+             intrinsics: Intrinsics | None = None) -> LocalizerResult:
+        """Process one frame.
+
+        Args:
+            image: ``(H, W, C)`` / ``(H, W)`` uint8 array in ``encoding`` (rgb8, bgr8, rgba8, bgra8, mono8).
+            stamp: seconds (the camera's stamp; only differences matter).
+            depth: ``(H, W) float32`` metres aligned with ``image`` (0 = invalid), replacing the
+                predicted depth for warping; None to use the prediction.
+            intrinsics: of the camera image; None for the checkpoint default.
+
+        Raises:
+            FrameError: the frame is unusable (``reason``: see ``preprocess.REASONS``, or
+                ``nan_output`` after non-finite network outputs, which also resets the state).
+        """
+        start = time.perf_counter()
+        rgb = to_rgb(image, encoding)
+        net_intrinsics = self.default_intrinsics if intrinsics is None else intrinsics.resized(*self.input_size)
+        x, K, d = network_input(rgb, self.input_size, net_intrinsics, depth)
+        stamp = float(stamp)
+        shape = rgb.shape[:2]
+        reason = self._reset_reason(stamp, shape, net_intrinsics)
+        if reason is not None:
+            self._state = None
+        with torch.inference_mode():
+            out, state = self.model.step(x.to(self.device), self._state, K.to(self.device), None if d is None else d.to(self.device))
+            outputs = (out.xyz, out.quat, out.rel_xyz, out.rel_quat, out.seg_logits)
+            finite = all(bool(torch.isfinite(v).all()) for v in outputs)
+            if finite:
+                ids = out.seg_logits[0].argmax(0).to(torch.uint8).cpu().numpy()
+                xyz, quat, rel_xyz, rel_quat = (v[0].double().cpu().numpy() for v in outputs[:4])
+        if not finite:
+            self.reset("nan_output")
+            raise FrameError("nan_output", "the network produced NaN or infinite outputs; frame rejected and temporal state reset")
+        dt = 0.0 if self._prev_stamp is None or reason is not None else stamp - self._prev_stamp
+        self._state = state
+        self._pending_reset = None
+        self._prev_stamp, self._prev_shape, self._prev_intrinsics = stamp, shape, net_intrinsics
+
+        q = geometry.quat_normalize(quat)
+        if reason is None:
+            rel_t, rel_q = rel_xyz, geometry.quat_normalize(rel_quat)
+            self._odom_t, self._odom_q = geometry.pose_compose(self._odom_t, self._odom_q, rel_t, rel_q)
+            self._odom_steps += 1
+            linear = geometry.quat_rotate(geometry.quat_inverse(rel_q), rel_t) / dt
+            angular = _rotation_vector(rel_q) / dt
+            twist_var = self.odometry_variance / dt**2
+        else:
+            rel_t, rel_q = _IDENTITY_T.copy(), _IDENTITY_Q.copy()
+            linear, angular = np.zeros(3), np.zeros(3)
+            twist_var = np.full(6, UNKNOWN_VARIANCE)
+        mask = cv2.resize(ids, (shape[1], shape[0]), interpolation=cv2.INTER_NEAREST_EXACT) if ids.shape != shape else ids
+        return LocalizerResult(
+            stamp=stamp, t=xyz, q=q, rel_t=rel_t, rel_q=rel_q, odom_t=self._odom_t.copy(), odom_q=self._odom_q.copy(),
+            linear=linear, angular=angular, dt=dt,
+            pose_covariance=np.diag(self.pose_variance),
+            odom_covariance=np.diag(self.odometry_variance * (1 + self._odom_steps)),
+            twist_covariance=np.diag(twist_var),
+            mask=mask, reset_reason=reason, seconds=time.perf_counter() - start,
+        )
+
+    def _reset_reason(self, stamp: float, shape: tuple[int, int], intrinsics: Intrinsics) -> str | None:
+        if self._pending_reset is not None or self._prev_stamp is None:
+            return self._pending_reset or "start"
+        if stamp <= self._prev_stamp:
+            return "stamp_backwards"
+        if stamp - self._prev_stamp > self.max_gap_s:
+            return "gap"
+        if shape != self._prev_shape:
+            return "resolution_change"
+        if intrinsics != self._prev_intrinsics:
+            return "intrinsics_change"
+        return None
+
+
+def _rotation_vector(q: np.ndarray) -> np.ndarray:
+    """Axis * angle (rad) of a unit quaternion ``(w, x, y, z)`` with ``w >= 0``."""
+    v = q[1:]
+    s = float(np.linalg.norm(v))
+    if s < 1e-12:
+        return 2.0 * v  # first order
+    return v / s * (2.0 * np.arctan2(s, q[0]))

@@ -1,0 +1,193 @@
+"""Camera frames in, network tensors out: decoding raw buffers by encoding, depth units, resizing.
+
+Shared by the ROS node (``vlocnetpp_ros``), bag replay and the offline tools, so every path
+turns the same bytes into the same tensor. No ROS types here: a raw image is its ``data``
+buffer plus ``width``, ``height``, ``step`` (bytes per row, may include padding), ``encoding``
+and ``is_bigendian``, as in ``sensor_msgs/Image``.
+
+Network input: the image is resized to the network input size ``(W, H)`` of the checkpoint,
+anisotropically when the aspect ratios differ (no crop, so every pixel of the camera image has
+a class id after the mask is brought back), with the intrinsics following through
+:meth:`Intrinsics.resized`. Depth is resized with exact nearest neighbour so that invalid (0)
+pixels never blend into valid ones.
+
+Every problem with a frame raises :class:`FrameError`, whose ``reason`` is a short fixed
+keyword (counted by the node's diagnostics) and whose message says what was wrong.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+import cv2
+import numpy as np
+import torch
+
+from vlocnetpp_core.intrinsics import Intrinsics
+
+# Colour encodings the localizer accepts: channels and the cv2 conversion to RGB (None: already RGB).
+IMAGE_ENCODINGS: dict[str, tuple[int, int | None]] = {
+    "rgb8": (3, None),
+    "bgr8": (3, cv2.COLOR_BGR2RGB),
+    "rgba8": (4, cv2.COLOR_RGBA2RGB),
+    "bgra8": (4, cv2.COLOR_BGRA2RGB),
+    "mono8": (1, cv2.COLOR_GRAY2RGB),
+}
+# Depth encodings: numpy dtype and the factor to metres (0 stays "invalid").
+DEPTH_ENCODINGS: dict[str, tuple[np.dtype, float]] = {
+    "32FC1": (np.dtype(np.float32), 1.0),
+    "16UC1": (np.dtype(np.uint16), 1e-3),
+}
+
+REASONS = (
+    "unsupported_encoding",  # encoding not in IMAGE_ENCODINGS (or DEPTH_ENCODINGS for depth)
+    "empty_image",  # width or height is zero
+    "bad_step",  # step smaller than one row of pixels
+    "truncated_data",  # fewer bytes than step * height
+    "data_size_mismatch",  # more bytes than step * height (width/height do not describe the buffer)
+    "bad_array",  # an array whose shape or dtype does not fit its encoding
+    "decode_failed",  # a compressed image that cannot be decoded
+    "depth_size",  # depth image of another size than the colour image
+)
+
+
+class FrameError(ValueError):
+    """A frame that cannot be used; ``reason`` is one keyword of :data:`REASONS` (or ``nan_output``)."""
+
+    def __init__(self, reason: str, message: str):
+        super().__init__(message)
+        self.reason = reason
+
+
+# --------------------------------------------------------------------------- raw buffers
+
+
+_LAYOUTS: dict[str, tuple[int, np.dtype]] = {
+    **{enc: (channels, np.dtype(np.uint8)) for enc, (channels, _) in IMAGE_ENCODINGS.items()},
+    **{enc: (1, dtype) for enc, (dtype, _) in DEPTH_ENCODINGS.items()},
+}
+
+
+def decode_raw(data, width: int, height: int, step: int, encoding: str, is_bigendian: bool = False,
+               allowed: Iterable[str] | None = None) -> np.ndarray:
+    """Pixels of a raw image buffer: ``(H, W)`` for one channel, else ``(H, W, C)``, in the
+    buffer's own channel order and the encoding's dtype (native byte order, always a copy).
+
+    ``data`` is anything with the buffer protocol (bytes, array.array, numpy); row padding
+    (``step`` larger than a row) is skipped. ``allowed`` restricts the encodings (default: the
+    colour and depth encodings together).
+    """
+    allowed = tuple(_LAYOUTS if allowed is None else allowed)
+    if encoding not in allowed:
+        raise FrameError("unsupported_encoding", f"unsupported encoding {encoding!r}; expected one of {', '.join(allowed)}")
+    channels, dtype = _LAYOUTS[encoding]
+    width, height, step = int(width), int(height), int(step)
+    if width <= 0 or height <= 0:
+        raise FrameError("empty_image", f"{encoding} image is {width}x{height}: nothing to process")
+    row = width * channels * dtype.itemsize
+    buf = np.frombuffer(data, dtype=np.uint8)
+    if step < row:
+        raise FrameError("bad_step", f"{encoding} image {width}x{height}: step {step} is smaller than a row of {row} bytes")
+    if buf.size < step * height:
+        raise FrameError("truncated_data", f"{encoding} image {width}x{height}, step {step}: {buf.size} data bytes, expected {step * height}")
+    if buf.size > step * height:
+        raise FrameError("data_size_mismatch",
+                         f"{encoding} image {width}x{height}, step {step}: {buf.size} data bytes, expected {step * height} (wrong width/height?)")
+    rows = buf.reshape(height, step)[:, :row].copy()
+    pixels = rows.view(dtype.newbyteorder(">" if is_bigendian else "<")).astype(dtype, copy=False)
+    return pixels.reshape(height, width) if channels == 1 else pixels.reshape(height, width, channels)
+
+
+# --------------------------------------------------------------------------- colour
+
+
+def to_rgb(image: np.ndarray, encoding: str) -> np.ndarray:
+    """``(H, W, 3) uint8`` RGB of an 8-bit image array in ``encoding`` (see :data:`IMAGE_ENCODINGS`)."""
+    if encoding not in IMAGE_ENCODINGS:
+        raise FrameError("unsupported_encoding", f"unsupported image encoding {encoding!r}; expected one of {', '.join(IMAGE_ENCODINGS)}")
+    channels, code = IMAGE_ENCODINGS[encoding]
+    a = np.asarray(image)
+    fits = a.ndim == 2 or (a.ndim == 3 and a.shape[2] == 1) if channels == 1 else a.ndim == 3 and a.shape[2] == channels
+    if a.dtype != np.uint8 or not fits:
+        raise FrameError("bad_array", f"array {a.shape} {a.dtype} does not fit encoding {encoding} ({channels} x uint8)")
+    if a.shape[0] == 0 or a.shape[1] == 0:
+        raise FrameError("empty_image", f"{encoding} image is {a.shape[1]}x{a.shape[0]}: nothing to process")
+    if code is None:
+        return a
+    return cv2.cvtColor(np.ascontiguousarray(a), code)
+
+
+def decode_compressed(data) -> np.ndarray:
+    """``(H, W, 3) uint8`` RGB of a PNG / JPEG buffer (``sensor_msgs/CompressedImage.data``)."""
+    buf = np.frombuffer(data, dtype=np.uint8)
+    bgr = cv2.imdecode(buf, cv2.IMREAD_COLOR) if buf.size else None
+    if bgr is None:
+        raise FrameError("decode_failed", f"cannot decode the {buf.size}-byte compressed image (PNG or JPEG expected)")
+    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+
+# --------------------------------------------------------------------------- depth
+
+
+def depth_to_metres(depth: np.ndarray, encoding: str) -> np.ndarray:
+    """``(H, W) float32`` metres of a ``32FC1`` (metres) or ``16UC1`` (millimetres) depth array.
+
+    Invalid pixels (0, negative, NaN, infinite) become 0, the "no depth" value of the model.
+    """
+    if encoding not in DEPTH_ENCODINGS:
+        raise FrameError("unsupported_encoding", f"unsupported depth encoding {encoding!r}; expected one of {', '.join(DEPTH_ENCODINGS)}")
+    a = np.asarray(depth)
+    if a.ndim == 3 and a.shape[2] == 1:
+        a = a[..., 0]
+    dtype, scale = DEPTH_ENCODINGS[encoding]
+    if a.ndim != 2 or a.dtype != dtype:
+        raise FrameError("bad_array", f"depth array {a.shape} {a.dtype} does not fit encoding {encoding} (H x W {dtype})")
+    metres = a.astype(np.float32) * np.float32(scale)
+    metres[~np.isfinite(metres) | (metres < 0)] = 0.0
+    return metres
+
+
+# --------------------------------------------------------------------------- network input
+
+
+def resize_image(rgb: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """``rgb (H, W, 3) uint8`` resized to ``size = (W', H')`` (area averaging when shrinking)."""
+    w, h = size
+    if rgb.shape[1] == w and rgb.shape[0] == h:
+        return rgb
+    shrink = w < rgb.shape[1] or h < rgb.shape[0]
+    return cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR)
+
+
+def resize_depth(depth: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """``depth (H, W) float32`` resized to ``size = (W', H')`` with exact nearest neighbour."""
+    w, h = size
+    if depth.shape[1] == w and depth.shape[0] == h:
+        return depth
+    return cv2.resize(depth, (w, h), interpolation=cv2.INTER_NEAREST_EXACT)
+
+
+def image_tensor(rgb: np.ndarray) -> torch.Tensor:
+    """``(H, W, 3) uint8`` -> ``(1, 3, H, W) float32`` in ``[0, 1]`` (the model's input format)."""
+    return torch.from_numpy(np.ascontiguousarray(rgb)).permute(2, 0, 1)[None].float().div_(255.0)
+
+
+def network_input(rgb: np.ndarray, size: tuple[int, int], intrinsics: Intrinsics, depth: np.ndarray | None = None
+                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """Everything one model step needs, at the network input ``size = (W, H)``.
+
+    Args:
+        rgb: ``(H0, W0, 3) uint8`` camera image.
+        intrinsics: of the camera image (any resolution with the same field of view: it is scaled).
+        depth: ``(H0, W0) float32`` metres aligned with ``rgb`` (0 = invalid), or None.
+
+    Returns:
+        ``image (1, 3, H, W)`` in ``[0, 1]``, ``K (1, 3, 3)`` float32 at ``W x H``,
+        ``depth (1, 1, H, W)`` metres or None.
+    """
+    if depth is not None and depth.shape[:2] != rgb.shape[:2]:
+        raise FrameError("depth_size", f"depth image is {depth.shape[1]}x{depth.shape[0]} but the colour image is {rgb.shape[1]}x{rgb.shape[0]}")
+    image = image_tensor(resize_image(rgb, size))
+    K = torch.from_numpy(intrinsics.resized(*size).matrix()).float()[None]
+    d = None if depth is None else torch.from_numpy(np.ascontiguousarray(resize_depth(depth, size)))[None, None]
+    return image, K, d

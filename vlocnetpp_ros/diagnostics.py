@@ -1,0 +1,129 @@
+"""Counters, rates and latency of the localizer node, reported as ``diagnostic_msgs/DiagnosticStatus``.
+
+Thread-safe: the subscription callback records arrivals, the inference worker records results.
+Rates and latency statistics cover the last ``window_s`` seconds; counters are totals since
+start. Key names (``DiagnosticStatus.values``): ``input_rate_hz``, ``processing_rate_hz``,
+``latency_ms_median``, ``latency_ms_max`` (callback -> outputs published), ``received``,
+``processed``, ``dropped`` (replaced in the one-slot mailbox before inference), ``rejected``
+(frames skipped, total) and ``rejected.<reason>``, ``ignored.<reason>`` (depth or camera
+info not used, the frame still processed), ``resets`` (total) and ``reset.<reason>``, plus static
+``info`` entries (checkpoint, device, input size).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import Counter, deque
+
+from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
+
+
+class NodeStats:
+    """What the node did, for ``/diagnostics``."""
+
+    def __init__(self, window_s: float = 5.0, info: dict[str, str] | None = None):
+        self.window_s = window_s
+        self.info = dict(info or {})
+        self._lock = threading.Lock()
+        self._arrivals: deque[float] = deque()
+        self._done: deque[tuple[float, float]] = deque()  # (finish time, latency s)
+        self.received = 0
+        self.processed = 0
+        self.dropped = 0
+        self.rejected: Counter[str] = Counter()
+        self.ignored: Counter[str] = Counter()
+        self.resets: Counter[str] = Counter()
+
+    def arrived(self, now: float, replaced: bool) -> None:
+        with self._lock:
+            self.received += 1
+            self.dropped += int(replaced)
+            self._arrivals.append(now)
+            self._trim(now)
+
+    def processed_frame(self, now: float, latency_s: float, reset_reason: str | None) -> None:
+        with self._lock:
+            self.processed += 1
+            self._done.append((now, latency_s))
+            if reset_reason is not None and reset_reason != "start":
+                self.resets[reset_reason] += 1
+            self._trim(now)
+
+    def reject(self, reason: str) -> None:
+        """A camera frame skipped for ``reason``."""
+        with self._lock:
+            self.rejected[reason] += 1
+
+    def ignore(self, reason: str) -> None:
+        """A side input (depth, camera info) not used for ``reason``; frames still processed."""
+        with self._lock:
+            self.ignored[reason] += 1
+
+    def _trim(self, now: float) -> None:
+        while self._arrivals and self._arrivals[0] < now - self.window_s:
+            self._arrivals.popleft()
+        while self._done and self._done[0][0] < now - self.window_s:
+            self._done.popleft()
+
+    def snapshot(self, now: float | None = None) -> dict[str, float | int | str]:
+        """Every reported value by key (numbers stay numbers here)."""
+        now = time.monotonic() if now is None else now
+        with self._lock:
+            self._trim(now)
+            lat = sorted(d[1] for d in self._done)
+            out: dict[str, float | int | str] = {
+                "input_rate_hz": len(self._arrivals) / self.window_s,
+                "processing_rate_hz": len(self._done) / self.window_s,
+                "latency_ms_median": 1000.0 * lat[len(lat) // 2] if lat else 0.0,
+                "latency_ms_max": 1000.0 * lat[-1] if lat else 0.0,
+                "received": self.received,
+                "processed": self.processed,
+                "dropped": self.dropped,
+                "rejected": sum(self.rejected.values()),
+                "resets": sum(self.resets.values()),
+            }
+            out.update({f"rejected.{k}": v for k, v in sorted(self.rejected.items())})
+            out.update({f"ignored.{k}": v for k, v in sorted(self.ignored.items())})
+            out.update({f"reset.{k}": v for k, v in sorted(self.resets.items())})
+            out.update(self.info)
+            return out
+
+    def status(self, name: str, hardware_id: str, now: float | None = None) -> DiagnosticStatus:
+        """``DiagnosticStatus``: OK while frames are processed, WARN when none arrive or none get through."""
+        values = self.snapshot(now)
+        if values["input_rate_hz"] == 0:
+            level, message = DiagnosticStatus.WARN, "no camera frames received"
+        elif values["processing_rate_hz"] == 0:
+            level, message = DiagnosticStatus.WARN, "frames arrive but none are processed (see rejected.*)"
+        else:
+            level, message = DiagnosticStatus.OK, f"{values['processing_rate_hz']:.1f} Hz, median latency {values['latency_ms_median']:.0f} ms"
+        return DiagnosticStatus(level=level, name=name, message=message, hardware_id=hardware_id,
+                                values=[KeyValue(key=k, value=_fmt(v)) for k, v in values.items()])
+
+
+def _fmt(v: float | int | str) -> str:
+    return f"{v:.3f}" if isinstance(v, float) else str(v)
+
+
+class ThrottledLog:
+    """At most one log line per key every ``period_s`` seconds, telling how many were suppressed."""
+
+    def __init__(self, log, period_s: float = 5.0):
+        self._log = log
+        self.period_s = period_s
+        self._last: dict[str, float] = {}
+        self._suppressed: Counter[str] = Counter()
+        self._lock = threading.Lock()
+
+    def __call__(self, key: str, message: str, now: float | None = None) -> bool:
+        """Log ``message`` unless ``key`` was logged less than ``period_s`` ago; True when logged."""
+        now = time.monotonic() if now is None else now
+        with self._lock:
+            if key in self._last and now - self._last[key] < self.period_s:
+                self._suppressed[key] += 1
+                return False
+            self._last[key] = now
+            skipped = self._suppressed.pop(key, 0)
+        self._log(message + (f" ({skipped} more like this in the last {self.period_s:g} s)" if skipped else ""))
+        return True

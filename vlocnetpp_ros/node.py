@@ -1,0 +1,258 @@
+"""``localizer``: the VLocNet++ ROS 2 node (``ros2 run vlocnetpp_ros localizer --ros-args --params-file config/localizer.yaml``).
+
+Subscribes to a camera (``sensor_msgs/Image`` rgb8 / bgr8 / rgba8 / bgra8 / mono8, or
+``CompressedImage`` on ``<image_topic>/compressed`` with ``use_compressed``), optionally an
+aligned depth image (32FC1 metres or 16UC1 millimetres, matched to the colour image by stamp)
+and ``CameraInfo``, and publishes for every processed frame, with the input stamp:
+
+* ``vlocnet/pose`` (``PoseStamped`` in ``map_frame``): global camera pose;
+* ``vlocnet/odometry`` (``Odometry`` in ``odom_frame``, child ``base_frame`` or the image's
+  frame): pose accumulated from the odometry stream, twist = relative motion / dt, covariances
+  from the checkpoint calibration;
+* ``vlocnet/segmentation`` (``Image`` mono8, the input's frame): class id per pixel;
+* ``/diagnostics`` (1 Hz): rates, latency, dropped, rejected by reason, resets by reason.
+
+All numbers come from :class:`vlocnetpp_core.localizer.Localizer`; this node only converts
+messages. The subscription callback only drops the message into a one-slot mailbox (never
+blocks); a worker thread takes the newest frame, so a camera faster than the model has its
+older frames dropped and counted. Camera topics use reliability ``BEST_AVAILABLE``: reliable
+delivery from a reliable camera, and a best-effort camera still connects (see docs/node.md
+for the transport settings large best-effort streams need). A bad frame (encoding, size,
+truncated data, NaN output, ...) is logged (throttled), counted and skipped; the node keeps going.
+"""
+
+from __future__ import annotations
+
+import sys
+import threading
+import time
+from collections import deque
+from pathlib import Path
+
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseStamped
+from nav_msgs.msg import Odometry
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.exceptions import NameValidationException, ParameterException
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
+from std_msgs.msg import Header
+
+from vlocnetpp_core.errors import UserError
+from vlocnetpp_core.localizer import Localizer
+from vlocnetpp_core.preprocess import FrameError
+from vlocnetpp_ros import conversions
+from vlocnetpp_ros.diagnostics import NodeStats, ThrottledLog
+from vlocnetpp_ros.mailbox import LatestMailbox
+
+PACKAGE = "vlocnetpp_ros"
+DEFAULT_MODEL = "models/vlocnetpp_lite.safetensors"  # relative to the package share folder
+CAMERA_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5, reliability=ReliabilityPolicy.BEST_AVAILABLE)
+DEPTH_MATCH_FRAMES = 8  # depth images kept for matching colour stamps
+
+# name -> (default, description); every one is in config/localizer.yaml.
+PARAMETERS: dict[str, tuple[object, str]] = {
+    "checkpoint": ("", f"checkpoint NAME.safetensors (NAME.json next to it); empty: the shipped share/{PACKAGE}/{DEFAULT_MODEL}"),
+    "image_topic": ("/camera/image_raw", "sensor_msgs/Image topic (with use_compressed: <image_topic>/compressed)"),
+    "depth_topic": ("", "aligned depth Image (32FC1 metres or 16UC1 mm, same stamp and size as the colour image); empty: predicted depth"),
+    "camera_info_topic": ("", "sensor_msgs/CameraInfo topic of the camera; empty: the checkpoint's default intrinsics"),
+    "use_compressed": (False, "subscribe to sensor_msgs/CompressedImage (PNG/JPEG) on <image_topic>/compressed"),
+    "map_frame": ("map", "frame_id of the published global pose"),
+    "odom_frame": ("odom", "frame_id of the published odometry"),
+    "base_frame": ("", "child_frame_id of the odometry (the camera's pose is published, no TF applied); empty: the image's frame_id"),
+    "max_gap_s": (1.0, "reset the temporal state when consecutive processed frames are further apart than this (seconds)"),
+    "publish_segmentation": (True, "publish the class-id mask on vlocnet/segmentation"),
+    "device": ("cpu", "torch device: cpu or cuda (cuda:N)"),
+    "num_threads": (0, "torch CPU threads; 0: torch's default"),
+}
+
+
+def default_checkpoint() -> Path:
+    """The shipped model: ``share/vlocnetpp_ros/models/vlocnetpp_lite.safetensors`` (or the source tree's ``models/``)."""
+    candidates = []
+    try:
+        from ament_index_python.packages import get_package_share_directory
+
+        candidates.append(Path(get_package_share_directory(PACKAGE)) / DEFAULT_MODEL)
+    except Exception:  # PackageNotFoundError, or ament_index not importable
+        pass
+    candidates.append(Path(__file__).resolve().parents[1] / DEFAULT_MODEL)
+    for path in candidates:
+        if path.is_file():
+            return path
+    raise UserError(f"no 'checkpoint' parameter given and the shipped model is missing (looked for {', '.join(map(str, candidates))}); "
+                    "set one with --ros-args -p checkpoint:=/path/NAME.safetensors")
+
+
+def _check_parameters(p: dict) -> None:
+    if not p["max_gap_s"] > 0:
+        raise UserError(f"parameter max_gap_s must be > 0 seconds, got {p['max_gap_s']}")
+    if p["num_threads"] < 0:
+        raise UserError(f"parameter num_threads must be >= 0 (0: torch default), got {p['num_threads']}")
+    dev = str(p["device"])
+    if not (dev == "cpu" or dev == "cuda" or (dev.startswith("cuda:") and dev[5:].isdigit())):
+        raise UserError(f"parameter device must be 'cpu', 'cuda' or 'cuda:N', got {dev!r}")
+    if not p["image_topic"]:
+        raise UserError("parameter image_topic is empty")
+
+
+class LocalizerNode(Node):
+    """The node; raises :class:`UserError` at construction when the checkpoint cannot be used."""
+
+    def __init__(self, **kwargs):
+        super().__init__("localizer", **kwargs)
+        for name, (default, description) in PARAMETERS.items():
+            self.declare_parameter(name, default, ParameterDescriptor(description=description, read_only=True))
+        p = {name: self.get_parameter(name).value for name in PARAMETERS}
+        self.params = p
+        _check_parameters(p)
+        checkpoint = Path(p["checkpoint"]) if p["checkpoint"] else default_checkpoint()
+        self.localizer = Localizer.from_checkpoint(checkpoint, device=p["device"], max_gap_s=p["max_gap_s"], num_threads=p["num_threads"] or None)
+        w, h = self.localizer.input_size
+        self.stats = NodeStats(info={"checkpoint": str(checkpoint), "device": str(p["device"]), "input_size": f"{w}x{h}"})
+        self.warn = ThrottledLog(self.get_logger().warning)
+        self._mailbox = LatestMailbox()
+        self._intrinsics = None
+        self._depths: deque[Image] = deque(maxlen=DEPTH_MATCH_FRAMES)
+        self._depth_lock = threading.Lock()
+
+        self.pose_pub = self.create_publisher(PoseStamped, "vlocnet/pose", 10)
+        self.odom_pub = self.create_publisher(Odometry, "vlocnet/odometry", 10)
+        self.seg_pub = self.create_publisher(Image, "vlocnet/segmentation", 10) if p["publish_segmentation"] else None
+        self.diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        if p["use_compressed"]:
+            image_topic = p["image_topic"].rstrip("/") + "/compressed"
+            self.create_subscription(CompressedImage, image_topic, self._on_image, CAMERA_QOS)
+        else:
+            image_topic = p["image_topic"]
+            self.create_subscription(Image, image_topic, self._on_image, CAMERA_QOS)
+        if p["depth_topic"]:
+            self.create_subscription(Image, p["depth_topic"], self._on_depth, CAMERA_QOS)
+        if p["camera_info_topic"]:
+            self.create_subscription(CameraInfo, p["camera_info_topic"], self._on_camera_info, CAMERA_QOS)
+        self.create_timer(1.0, self._publish_diagnostics)
+
+        self._stop = threading.Event()
+        self._worker = threading.Thread(target=self._work, name="vlocnetpp-inference", daemon=True)
+        self._worker.start()
+        self.get_logger().info(f"localizer ready: {checkpoint} on {p['device']} (network input {w}x{h}), camera {image_topic}")
+
+    # ------------------------------------------------------------------ callbacks (never block)
+
+    def _on_image(self, msg) -> None:
+        now = time.monotonic()
+        self.stats.arrived(now, self._mailbox.put((msg, now)))
+
+    def _on_depth(self, msg: Image) -> None:
+        with self._depth_lock:
+            self._depths.append(msg)
+
+    def _on_camera_info(self, msg: CameraInfo) -> None:
+        try:
+            self._intrinsics = conversions.camera_info_to_intrinsics(msg)
+        except FrameError as err:
+            self._ignore(err)
+
+    # ------------------------------------------------------------------ worker
+
+    def _work(self) -> None:
+        while not self._stop.is_set():
+            item = self._mailbox.take(timeout=0.2)
+            if item is None:
+                continue
+            try:
+                self._process(*item)
+            except FrameError as err:
+                self._reject(err)
+            except Exception as err:  # the node never dies on a frame
+                if self._stop.is_set() or not rclpy.ok(context=self.context):
+                    return
+                self._reject(FrameError("internal_error", f"{type(err).__name__}: {err}"))
+
+    def _process(self, msg, arrival: float) -> None:
+        if isinstance(msg, CompressedImage):
+            image, encoding = conversions.compressed_to_rgb(msg), "rgb8"
+        else:
+            image, encoding = conversions.image_to_array(msg), msg.encoding
+        stamp = conversions.stamp_to_seconds(msg.header.stamp)
+        depth = self._matching_depth(msg.header.stamp)
+        try:
+            result = self.localizer.step(image, encoding, stamp, depth=depth, intrinsics=self._intrinsics)
+        except FrameError as err:
+            if depth is None or err.reason != "depth_size":
+                raise
+            self._ignore(err)  # use the predicted depth for this frame
+            result = self.localizer.step(image, encoding, stamp, intrinsics=self._intrinsics)
+        if result.reset_reason not in (None, "start"):
+            self.get_logger().info(f"temporal state reset ({result.reset_reason}) at stamp {stamp:.3f}")
+        frame = msg.header.frame_id
+        self.pose_pub.publish(conversions.pose_stamped(result, Header(stamp=msg.header.stamp, frame_id=self.params["map_frame"])))
+        self.odom_pub.publish(conversions.odometry(result, Header(stamp=msg.header.stamp, frame_id=self.params["odom_frame"]),
+                                                   self.params["base_frame"] or frame))
+        if self.seg_pub is not None:
+            self.seg_pub.publish(conversions.mask_to_image(result.mask, Header(stamp=msg.header.stamp, frame_id=frame)))
+        now = time.monotonic()
+        self.stats.processed_frame(now, now - arrival, result.reset_reason)
+
+    def _matching_depth(self, stamp):
+        """Depth (metres) with exactly this stamp, or None (then the predicted depth is used)."""
+        if not self.params["depth_topic"]:
+            return None
+        with self._depth_lock:
+            match = next((d for d in reversed(self._depths) if d.header.stamp == stamp), None)
+        if match is None:
+            self._ignore(FrameError("depth_missing", "no depth image with the colour image's stamp; using the predicted depth"))
+            return None
+        try:
+            return conversions.depth_to_array(match)
+        except FrameError as err:
+            self._ignore(err)
+            return None
+
+    def _reject(self, err: FrameError) -> None:
+        """A camera frame skipped."""
+        self.stats.reject(err.reason)
+        self.warn(err.reason, f"frame skipped ({err.reason}): {err}")
+
+    def _ignore(self, err: FrameError) -> None:
+        """A side input (depth, camera info) not used; the frame itself is still processed."""
+        self.stats.ignore(err.reason)
+        self.warn(err.reason, f"ignored ({err.reason}): {err}")
+
+    def _publish_diagnostics(self) -> None:
+        status = self.stats.status("vlocnetpp_ros: localizer", self.get_fully_qualified_name())
+        self.diag_pub.publish(DiagnosticArray(header=Header(stamp=self.get_clock().now().to_msg()), status=[status]))
+
+    def close(self, timeout_s: float = 1.5) -> None:
+        """Stop the worker (waits for the frame in progress, at most ``timeout_s``)."""
+        self._stop.set()
+        self._mailbox.close()
+        self._worker.join(timeout_s)
+
+
+def main(args: list[str] | None = None) -> int:
+    """Entry point; returns 0 after SIGINT/SIGTERM, 1 when the node cannot start (one log line says why)."""
+    rclpy.init(args=args)
+    node = None
+    code = 0
+    try:
+        node = LocalizerNode()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except (UserError, ParameterException, NameValidationException) as err:
+        rclpy.logging.get_logger("localizer").error(f"cannot start: {err}")
+        code = 1
+    finally:
+        if node is not None:
+            node.close()
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return code
+
+
+if __name__ == "__main__":
+    sys.exit(main())
