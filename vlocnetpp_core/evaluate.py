@@ -7,9 +7,8 @@ of ``step`` are recorded; :func:`vlocnetpp_core.metrics.evaluate_sequences` turn
 report (pose, KITTI-style odometry, segmentation, timing; see ``metrics``), which is printed as a
 table and optionally written as JSON, TUM trajectories and plots.
 
-Segmentation is scored against the dataset labels brought to the mask's resolution by the same
-test transform the localizer applies (resize to cover the network input, centre crop), or as they
-are when the mask comes back at the image resolution.
+Segmentation is scored at the dataset image resolution: the localizer brings its class-id mask
+back to the size of the image it was given (nearest neighbour), as the node publishes it.
 """
 
 from __future__ import annotations
@@ -18,12 +17,12 @@ import argparse
 import json
 import math
 import os
-import time
 from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
 
+from vlocnetpp_core.classes import CLASS_NAMES
 from vlocnetpp_core.errors import UserError
 from vlocnetpp_core.metrics import DEFAULT_THRESHOLDS, SequenceRecorder, SequenceResult, accuracy_key, evaluate_sequences
 
@@ -46,9 +45,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--samples", type=int, default=3, metavar="K", help="frames per sequence in the segmentation strip plot (default 3)")
     p.add_argument("--device", default="cpu", help="torch device (default cpu)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-
-
-_NO_RANDOMNESS = np.random.default_rng(0)  # the test transform draws nothing
 
 
 def _positive(value: float, flag: str) -> float:
@@ -81,30 +77,29 @@ def _sample_positions(n: int, k: int) -> set[int]:
     return set(np.linspace(0, n - 1, k).round().astype(int).tolist()) if n > 0 and k > 0 else set()
 
 
-def _labels_for_mask(frame, mask_shape: tuple[int, int], transform) -> np.ndarray | None:
-    """The frame's labels at the mask resolution (as they are, or through the localizer's test transform)."""
-    if frame.labels is None:
-        return None
-    if frame.labels.shape == mask_shape:
-        return frame.labels
-    labels = transform([frame], _NO_RANDOMNESS)[0].labels
-    if labels.shape != mask_shape:
-        raise UserError(f"segmentation mask is {mask_shape[1]}x{mask_shape[0]} but the labels of {frame.frame_id} are "
-                        f"{frame.labels.shape[1]}x{frame.labels.shape[0]} ({labels.shape[1]}x{labels.shape[0]} after the test transform)")
-    return labels
+def _check_mask(frame, mask: np.ndarray) -> None:
+    if mask.shape != frame.image.shape[:2]:
+        raise UserError(f"the localizer returned a {mask.shape[1]}x{mask.shape[0]} mask for the "
+                        f"{frame.image.shape[1]}x{frame.image.shape[0]} image {frame.frame_id}")
 
 
 def run_localizer(localizer, index, max_frames: int | None = None, samples: int = 3, use_depth: bool = False,
-                  progress: bool = True) -> list[SequenceResult]:
-    """Stream every sequence of ``index`` (a ``DatasetIndex``) through ``localizer``; one result per sequence."""
+                  progress: bool = True) -> tuple[list[SequenceResult], dict[str, int]]:
+    """Stream every sequence of ``index`` (a ``DatasetIndex``) through ``localizer`` (a ``Localizer``).
+
+    The temporal state is reset at each sequence start. Frames the localizer rejects
+    (``FrameError``, e.g. non-finite outputs) are left out, as the node drops them; the count per
+    reason is returned with the per-sequence results. ``ms`` is the localizer's own wall time of
+    ``step`` (decoding the dataset files is not included).
+    """
     from tqdm import tqdm
 
-    from vlocnetpp_core.data import make_transform
+    from vlocnetpp_core.preprocess import FrameError
 
-    transform = make_transform(False, localizer.input_size)
     ranges = [r if max_frames is None else r[:max_frames] for r in index.sequences]
     bar = tqdm(total=sum(len(r) for r in ranges), unit="frame", desc="evaluate", disable=not progress, dynamic_ncols=True)
-    results = []
+    results: list[SequenceResult] = []
+    rejected: dict[str, int] = {}
     try:
         for rng in ranges:
             if len(rng) == 0:
@@ -113,25 +108,26 @@ def run_localizer(localizer, index, max_frames: int | None = None, samples: int 
             bar.set_postfix_str(name)
             recorder = SequenceRecorder(name, localizer.num_classes)
             keep = {rng[p] for p in _sample_positions(len(rng), samples)}
-            localizer.reset()
+            localizer.reset("start")
             for i in rng:
                 frame = index.load(i)
-                start = time.perf_counter()
-                out = localizer.step(frame.image, "rgb8", frame.stamp, depth=frame.depth if use_depth else None, intrinsics=frame.intrinsics)
-                ms = (time.perf_counter() - start) * 1000.0
-                recorder.add(frame.stamp, frame.t, frame.q, out.t, out.q, out.rel_t, out.rel_q, ms)
-                mask = np.asarray(out.mask)
-                labels = _labels_for_mask(frame, mask.shape, transform)
-                if labels is not None:
-                    recorder.add_labels(labels, mask)
-                if i in keep:
-                    image = frame.image if mask.shape == frame.image.shape[:2] else transform([frame], _NO_RANDOMNESS)[0].image
-                    recorder.add_sample(image, mask, labels)
                 bar.update(1)
-            results.append(recorder.result())
+                try:
+                    out = localizer.step(frame.image, "rgb8", frame.stamp, depth=frame.depth if use_depth else None, intrinsics=frame.intrinsics)
+                except FrameError as err:
+                    rejected[err.reason] = rejected.get(err.reason, 0) + 1
+                    continue
+                _check_mask(frame, out.mask)
+                recorder.add(frame.stamp, frame.t, frame.q, out.t, out.q, out.rel_t, out.rel_q, out.seconds * 1000.0)
+                if frame.labels is not None:
+                    recorder.add_labels(frame.labels, out.mask)
+                if i in keep:
+                    recorder.add_sample(frame.image, out.mask, frame.labels)
+            if len(recorder):
+                results.append(recorder.result())
     finally:
         bar.close()
-    return results
+    return results, rejected
 
 
 # --------------------------------------------------------------------------- output
@@ -226,11 +222,16 @@ def run(args: argparse.Namespace) -> int:
     if len(index) == 0:
         raise UserError(f"{args.data}: split {args.split!r} has no frames")
     localizer = Localizer.from_checkpoint(args.checkpoint, device=args.device)
-    results = run_localizer(localizer, index, args.max_frames, args.samples, args.use_depth, progress=not args.no_progress)
+    results, rejected = run_localizer(localizer, index, args.max_frames, args.samples, args.use_depth, progress=not args.no_progress)
+    if not results:
+        raise UserError(f"{args.checkpoint}: the localizer rejected every frame ({rejected})")
+    class_names = localizer.class_names if len(localizer.class_names) == localizer.num_classes else CLASS_NAMES[: localizer.num_classes]
 
-    report = evaluate_sequences(results, thresholds, lengths, localizer.class_names)
+    report = evaluate_sequences(results, thresholds, lengths, class_names)
     report["meta"] = {"checkpoint": str(args.checkpoint), "data": str(args.data), "split": args.split}
     print(format_report(report, {r.name: len(r.stamps) for r in results}))
+    if rejected:
+        print("frames rejected by the localizer (left out): " + ", ".join(f"{k} {v}" for k, v in sorted(rejected.items())))
     if args.json:
         write_json(args.json, report)
         print(f"metrics: {args.json}")
@@ -240,6 +241,6 @@ def run(args: argparse.Namespace) -> int:
     if args.plots:
         from vlocnetpp_core.plots import write_plots
 
-        write_plots(args.plots, results, localizer.class_names)
+        write_plots(args.plots, results, class_names)
         print(f"plots: {args.plots}")
     return 0

@@ -1,0 +1,108 @@
+"""`vlocnetpp evaluate` end to end: a lite checkpoint over a rendered test loop, through the Localizer."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from vlocnetpp_core import cli
+from vlocnetpp_core.classes import CLASS_NAMES
+from vlocnetpp_core.metrics import kitti_segment_errors, pose_errors
+from vlocnetpp_core.trajectory import pose_matrices, read_tum
+
+FRAMES = 12
+
+
+@pytest.fixture(scope="module")
+def evaluated(tmp_path_factory):
+    from vlocnetpp_core.checkpoint import save_checkpoint
+    from vlocnetpp_core.data.synth import render_dataset
+    from vlocnetpp_core.model import VLocNetPP, load_model_config
+
+    tmp = tmp_path_factory.mktemp("evaluate")
+    render_dataset(tmp / "data", train_loops=1, test_loops=1, frames_per_loop=FRAMES, size=(160, 96), progress=False)
+    torch.manual_seed(0)
+    save_checkpoint(tmp / "ckpt" / "lite", VLocNetPP(load_model_config("lite")))
+    out = tmp / "out"
+    argv = ["evaluate", "--checkpoint", str(tmp / "ckpt" / "lite"), "--data", str(tmp / "data"), "--no-progress",
+            "--json", str(out / "metrics.json"), "--trajectories", str(out / "traj"), "--plots", str(out / "plots")]
+    return tmp, argv, out
+
+
+def test_evaluate_writes_report_trajectories_and_plots(evaluated, capsys):
+    tmp, argv, out = evaluated
+    assert cli.main(argv) == 0
+    stdout = capsys.readouterr().out
+    assert stdout.splitlines()[0].split()[:2] == ["sequence", "frames"]
+    assert any(line.split()[:2] == ["seq-00", str(FRAMES)] for line in stdout.splitlines())
+    assert any(line.startswith("overall") for line in stdout.splitlines())
+
+    report = json.loads((out / "metrics.json").read_text())
+    assert list(report) == ["overall", "per_sequence", "meta"]
+    assert report["meta"] == {"checkpoint": str(tmp / "ckpt" / "lite"), "data": str(tmp / "data"), "split": "test"}
+    assert list(report["per_sequence"]) == ["seq-00"]
+    for part in (report["overall"], report["per_sequence"]["seq-00"]):
+        assert list(part) == ["pose", "odometry", "segmentation", "timing"]
+        assert list(part["pose"]) == ["median_translation_m", "median_rotation_deg", "accuracy_5cm_5deg", "accuracy_0.5m_5deg"]
+        assert list(part["odometry"]) == ["translation_error_percent", "rotation_error_deg_per_m", "lengths_m"]
+        assert list(part["segmentation"]) == ["miou", "iou", "pixel_accuracy"]
+        assert list(part["segmentation"]["iou"]) == list(CLASS_NAMES)
+        assert 0.0 <= part["segmentation"]["miou"] <= 1.0 and 0.0 <= part["segmentation"]["pixel_accuracy"] <= 1.0
+        assert list(part["timing"]) == ["mean_ms", "median_ms"] and part["timing"]["median_ms"] > 0
+
+    # the JSON agrees with the TUM files it came with
+    seq = out / "traj" / "seq-00"
+    truth, glob, odo = (read_tum(seq / f"{n}.tum") for n in ("ground_truth", "global_pose", "odometry"))
+    assert len(truth) == len(glob) == len(odo) == FRAMES
+    trans, rot = pose_errors(glob.t, glob.q, truth.t, truth.q)
+    pose = report["overall"]["pose"]
+    assert pose["median_translation_m"] == pytest.approx(np.median(trans), abs=1e-9)
+    assert pose["median_rotation_deg"] == pytest.approx(np.median(rot), abs=1e-6)
+    np.testing.assert_allclose(odo.t[0], truth.t[0], atol=1e-12)  # odometry starts at the true first pose
+    odometry = report["overall"]["odometry"]
+    assert len(odometry["lengths_m"]) == 8 and odometry["lengths_m"][0] > 0
+    t_err, _ = kitti_segment_errors(pose_matrices(truth.t, truth.q), pose_matrices(odo.t, odo.q), odometry["lengths_m"])
+    assert odometry["translation_error_percent"] == pytest.approx(100 * np.mean(t_err), rel=1e-6)
+
+    for name in ("confusion.png", "seq-00/trajectory.png", "seq-00/errors.png", "seq-00/confusion.png", "seq-00/segmentation.png"):
+        image = cv2.imread(str(out / "plots" / name))
+        assert image is not None and image.shape[0] > 100, name
+
+
+def test_evaluate_streams_through_the_localizer(evaluated):
+    """The global poses written are those of the Localizer stepping over the frames in order."""
+    from vlocnetpp_core.data import open_dataset
+    from vlocnetpp_core.localizer import Localizer
+
+    tmp, _, out = evaluated
+    written = read_tum(out / "traj" / "seq-00" / "global_pose.tum")
+    index = open_dataset(tmp / "data", split="test")
+    localizer = Localizer.from_checkpoint(tmp / "ckpt" / "lite")
+    for i in range(4):
+        frame = index.load(index.sequences[0][i])
+        result = localizer.step(frame.image, "rgb8", frame.stamp, intrinsics=frame.intrinsics)
+        np.testing.assert_allclose(result.t, written.t[i], atol=1e-5)
+        assert written.stamps[i] == frame.stamp
+
+
+def test_evaluate_threshold_and_length_flags(evaluated, tmp_path):
+    tmp, argv, _ = evaluated
+    argv = argv[:6] + ["--no-progress", "--max-frames", "5", "--threshold-m", "2", "--threshold-deg", "90", "--odometry-lengths", "0.5,1",
+                       "--json", str(tmp_path / "m.json")]
+    assert cli.main(argv) == 0
+    report = json.loads((tmp_path / "m.json").read_text())
+    assert list(report["overall"]["pose"])[2:] == ["accuracy_5cm_5deg", "accuracy_2m_90deg"]
+    assert report["overall"]["odometry"]["lengths_m"] == [0.5, 1.0]
+    assert not (tmp_path / "traj").exists()
+
+
+def test_evaluate_missing_checkpoint_is_one_line(evaluated, capsys):
+    tmp, argv, _ = evaluated
+    argv = ["evaluate", "--checkpoint", str(tmp / "nope"), "--data", str(tmp / "data"), "--no-progress"]
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err
+    assert "nope.safetensors" in err and "Traceback" not in err
