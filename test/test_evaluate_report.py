@@ -77,9 +77,13 @@ def test_json_and_tum_files_read_back(tmp_path, results):
         (["--threshold-m", "0"], "--threshold-m must be a positive number"),
         (["--threshold-deg", "nan"], "--threshold-deg must be a positive number"),
         (["--max-frames", "0"], "--max-frames must be >= 1"),
+        (["--json", "."], "--json .: is a folder"),
+        (["--plots", "file.txt"], "--plots file.txt: exists and is not a folder"),
     ],
 )
-def test_bad_flags_give_one_line_errors(tmp_path, capsys, flags, message):
+def test_bad_flags_give_one_line_errors(tmp_path, capsys, monkeypatch, flags, message):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "file.txt").write_text("x")
     rc = cli.main(["evaluate", "--checkpoint", str(tmp_path / "none"), "--data", str(tmp_path), *flags])
     err = capsys.readouterr().err
     assert rc == 2

@@ -206,6 +206,15 @@ def write_trajectories(folder: str | Path, results: Iterable[SequenceResult]) ->
     return written
 
 
+def _check_outputs(args: argparse.Namespace) -> None:
+    """Fail before the (long) run when an output path cannot be written."""
+    if args.json and Path(args.json).is_dir():
+        raise UserError(f"--json {args.json}: is a folder; give a file name")
+    for flag, folder in (("--trajectories", args.trajectories), ("--plots", args.plots)):
+        if folder and Path(folder).exists() and not Path(folder).is_dir():
+            raise UserError(f"{flag} {folder}: exists and is not a folder")
+
+
 def run(args: argparse.Namespace) -> int:
     threshold = (_positive(args.threshold_m, "--threshold-m"), _positive(args.threshold_deg, "--threshold-deg"))
     thresholds = list(DEFAULT_THRESHOLDS[:1]) + ([threshold] if accuracy_key(*threshold) != accuracy_key(*DEFAULT_THRESHOLDS[0]) else [])
@@ -214,6 +223,7 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--max-frames must be >= 1, got {args.max_frames}")
     if args.samples < 0:
         raise UserError(f"--samples must be >= 0, got {args.samples}")
+    _check_outputs(args)
 
     from vlocnetpp_core.data import open_dataset
     from vlocnetpp_core.localizer import Localizer
