@@ -58,7 +58,7 @@ def test_streaming_reuses_cached_features_and_equals_recomputing(localizer: Loca
     results = [localizer.step(f, "rgb8", 10.0 + 0.05 * k) for k, f in enumerate(frames)]
     assert len(trunk_calls) == 3  # one trunk pass per frame: the previous frame is never recomputed
     clip = _clip(localizer, frames)
-    for k, (r, o) in enumerate(zip(results, clip)):
+    for k, (r, o) in enumerate(zip(results, clip, strict=True)):
         np.testing.assert_allclose(r.t, o.xyz[0].double().numpy(), atol=1e-5)
         np.testing.assert_allclose(r.q, geometry.quat_normalize(o.quat[0].double().numpy()), atol=1e-5)
         ids = o.seg_logits[0].argmax(0).to(torch.uint8).numpy()
@@ -79,7 +79,7 @@ def test_streaming_reuses_cached_features_and_equals_recomputing(localizer: Loca
 def test_odometry_accumulates_relative_poses_and_twist_is_motion_over_dt(localizer: Localizer):
     frames = _frames(5, seed=2)
     stamps = [3.0, 3.1, 3.25, 3.3, 3.5]
-    results = [localizer.step(f, "rgb8", s) for f, s in zip(frames, stamps)]
+    results = [localizer.step(f, "rgb8", s) for f, s in zip(frames, stamps, strict=True)]
     first = results[0]
     assert first.reset_reason == "start" and first.dt == 0.0
     assert np.array_equal(first.rel_t, np.zeros(3)) and np.array_equal(first.rel_q, [1, 0, 0, 0])
@@ -179,7 +179,7 @@ def test_given_depth_replaces_the_prediction_for_warping(localizer: Localizer):
     frames = _frames(2, seed=6)
     depths = [np.full((H, W), 6.0, np.float32) for _ in frames]
     depths[1][: H // 2] = 0.0  # invalid half
-    with_depth = [localizer.step(f, "rgb8", 0.05 * k, depth=d) for k, (f, d) in enumerate(zip(frames, depths))]
+    with_depth = [localizer.step(f, "rgb8", 0.05 * k, depth=d) for k, (f, d) in enumerate(zip(frames, depths, strict=True))]
     clip = _clip(localizer, frames, depths=depths)
     np.testing.assert_allclose(with_depth[1].t, clip[1].xyz[0].double().numpy(), atol=1e-5)
     localizer.reset()
