@@ -1,0 +1,219 @@
+"""``vlocnetpp evaluate-bag``: the metrics of ``vlocnetpp evaluate`` from a bag that holds ground truth and localizer outputs.
+
+Frames are matched by ``header.stamp``: a frame is scored when the bag has a ground-truth pose
+(``/ground_truth/pose``, or ``--ground-truth-topic``: ``PoseStamped``, ``PoseWithCovarianceStamped``
+or ``Odometry``) and a ``/vlocnet/pose`` with the same stamp. The matched frames are split into
+sequences where consecutive stamps are more than ``--max-gap-s`` apart (default 1 s, the node's
+``max_gap_s`` after which it resets its temporal state; the converter leaves 10 s between
+sequences) and named
+``seq-00``, ``seq-01``, ... in time order. Per sequence:
+
+* global pose: ``/vlocnet/pose`` against the ground truth;
+* odometry: the relative poses ``T_{k-1}^{-1} T_k`` between consecutive ``/vlocnet/odometry``
+  poses (the localizer's accumulated odometry), chained from the true first pose as ``evaluate`` does;
+* segmentation: ``/vlocnet/segmentation`` (``mono8`` class ids) against ``/camera/semantic`` when both
+  exist, at the image resolution (as the node publishes masks and ``evaluate`` scores them).
+
+:func:`vlocnetpp_core.metrics.evaluate_sequences` computes the report, so the numbers equal
+``vlocnetpp evaluate`` on the same frames (timing is not in a bag: it is reported as ``-``).
+The bag is read twice (poses, then label maps), streaming: label maps are never all in memory.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from vlocnetpp_core.bag import messages
+from vlocnetpp_core.bag.bagfile import BagReader
+from vlocnetpp_core.classes import CLASS_NAMES
+from vlocnetpp_core.errors import DataError, UserError
+from vlocnetpp_core.metrics import DEFAULT_THRESHOLDS, SequenceResult, accuracy_key, confusion_matrix, evaluate_sequences
+from vlocnetpp_core.trajectory import matrix_to_quat, pose_matrices
+
+GROUND_TRUTH_TOPIC = "/ground_truth/pose"
+SEMANTIC_TOPIC = "/camera/semantic"
+POSE_TOPIC = "/vlocnet/pose"
+ODOMETRY_TOPIC = "/vlocnet/odometry"
+SEGMENTATION_TOPIC = "/vlocnet/segmentation"
+IMAGE_TOPICS = ("/camera/image_raw", "/camera/image_raw/compressed")
+DEFAULT_MAX_GAP_S = 1.0  # the node's default max_gap_s: where it resets its temporal state
+_PENDING_LIMIT = 64  # label maps / masks waiting for their partner stamp (a partner never seen is dropped)
+
+
+@dataclass
+class MatchedFrames:
+    """The frames of a bag with ground truth and a global pose: ``stamps (N,)`` ns, poses ``(N, 3)`` /
+    ``(N, 4)`` ``(w, x, y, z)``, odometry poses (rows NaN where missing) and ``sequences`` (ranges)."""
+
+    stamps: np.ndarray
+    true_t: np.ndarray
+    true_q: np.ndarray
+    pred_t: np.ndarray
+    pred_q: np.ndarray
+    odom_t: np.ndarray
+    odom_q: np.ndarray
+    sequences: list[range]
+
+
+def _pose_of(msg) -> tuple[np.ndarray, np.ndarray]:
+    pose = msg.pose.pose if hasattr(msg.pose, "pose") else msg.pose  # Odometry / PoseWithCovarianceStamped / PoseStamped
+    return messages.pose_from_msg(pose)
+
+
+def split_on_gaps(stamps_ns: np.ndarray, max_gap_s: float) -> list[range]:
+    """Contiguous ranges of sorted stamps; a new range starts after a gap longer than ``max_gap_s``."""
+    if len(stamps_ns) == 0:
+        return []
+    cuts = np.nonzero(np.diff(stamps_ns) > max_gap_s * 1e9)[0] + 1
+    bounds = [0, *cuts.tolist(), len(stamps_ns)]
+    return [range(a, b) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
+
+
+def read_matched_frames(reader: BagReader, ground_truth_topic: str = GROUND_TRUTH_TOPIC, max_gap_s: float = DEFAULT_MAX_GAP_S) -> MatchedFrames:
+    """Pass 1: the poses of every frame with ground truth and ``/vlocnet/pose`` (see module doc)."""
+    for topic in (ground_truth_topic, POSE_TOPIC):
+        if topic not in reader.topics:
+            raise DataError(reader.path, f"no {topic} topic (topics: {', '.join(sorted(reader.topics)) or 'none'})")
+    poses: dict[str, dict[int, tuple[np.ndarray, np.ndarray]]] = {ground_truth_topic: {}, POSE_TOPIC: {}, ODOMETRY_TOPIC: {}}
+    for topic, _, msg in reader.messages(poses):
+        poses[topic][messages.stamp_ns(msg)] = _pose_of(msg)
+    gt, pred, odom = poses[ground_truth_topic], poses[POSE_TOPIC], poses[ODOMETRY_TOPIC]
+    stamps = np.array(sorted(gt.keys() & pred.keys()), dtype=np.int64)
+    if len(stamps) == 0:
+        raise DataError(reader.path, f"no {POSE_TOPIC} message has the stamp of a {ground_truth_topic} message")
+    nan_pose = (np.full(3, np.nan), np.full(4, np.nan))
+
+    def column(source, part, width):
+        return np.array([source.get(s, nan_pose)[part] for s in stamps.tolist()], dtype=np.float64).reshape(-1, width)
+
+    return MatchedFrames(stamps, column(gt, 0, 3), column(gt, 1, 4), column(pred, 0, 3), column(pred, 1, 4),
+                         column(odom, 0, 3), column(odom, 1, 4), split_on_gaps(stamps, max_gap_s))
+
+
+def relative_odometry(odom_t: np.ndarray, odom_q: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """``T_{k-1}^{-1} T_k`` of consecutive odometry poses (row 0 identity), or None when any pose is missing."""
+    if len(odom_t) == 0 or np.isnan(odom_t).any() or np.isnan(odom_q).any():
+        return None
+    T = pose_matrices(odom_t, odom_q)
+    rel = np.broadcast_to(np.eye(4), T.shape).copy()
+    rel[1:] = np.linalg.inv(T[:-1]) @ T[1:]
+    return rel[:, :3, 3].copy(), matrix_to_quat(rel[:, :3, :3])
+
+
+@dataclass
+class SegmentationScores:
+    """Pass 2 per sequence: ``confusion`` (or None without labels) and the ``samples`` kept for plots."""
+
+    confusion: list[np.ndarray | None]
+    samples: list[list[tuple[int, np.ndarray, np.ndarray, np.ndarray | None]]]
+
+
+def score_segmentation(reader: BagReader, where: dict[int, tuple[int, int]], sample_stamps: set[int],
+                       num_classes: int = len(CLASS_NAMES)) -> SegmentationScores:
+    """Pass 2: ``/vlocnet/segmentation`` against ``/camera/semantic`` for the frames in ``where`` (stamp ->
+    (sequence, position)); camera images are decoded only for ``sample_stamps``."""
+    n_seq = 1 + max((k for k, _ in where.values()), default=-1)
+    scores = SegmentationScores([None] * n_seq, [[] for _ in range(n_seq)])
+    have_labels = SEMANTIC_TOPIC in reader.topics
+    image_topic = next((t for t in IMAGE_TOPICS if t in reader.topics), None) if sample_stamps else None
+    if SEGMENTATION_TOPIC not in reader.topics or not (have_labels or image_topic):
+        return scores
+    topics = [SEGMENTATION_TOPIC] + ([SEMANTIC_TOPIC] if have_labels else []) + ([image_topic] if image_topic else [])
+    pending: dict[int, dict[str, np.ndarray]] = {}  # stamp -> the parts that arrived (topics may be logged at different times)
+    for topic, _, msg in reader.messages(topics):
+        ns = messages.stamp_ns(msg)
+        if ns not in where or (topic == image_topic and ns not in sample_stamps):
+            continue
+        parts = pending.setdefault(ns, {})
+        parts[topic] = messages.any_image_to_rgb(msg) if topic == image_topic else messages.image_to_array(msg)
+        needed = [SEGMENTATION_TOPIC] + ([SEMANTIC_TOPIC] if have_labels else []) + ([image_topic] if image_topic and ns in sample_stamps else [])
+        if not all(t in parts for t in needed):
+            if len(pending) > _PENDING_LIMIT:
+                del pending[min(pending)]
+            continue
+        del pending[ns]
+        k, position = where[ns]
+        mask, labels, image = parts[SEGMENTATION_TOPIC], parts.get(SEMANTIC_TOPIC), parts.get(image_topic)
+        for other, what in ((labels, SEMANTIC_TOPIC), (None if image is None else image[..., 0], image_topic)):
+            if other is not None and other.shape != mask.shape:
+                raise DataError(reader.path, f"at stamp {ns / 1e9:.9f} s the {SEGMENTATION_TOPIC} mask is {mask.shape[1]}x{mask.shape[0]} "
+                                             f"but {what} is {other.shape[1]}x{other.shape[0]} (the localizer publishes masks at the image size)")
+        if labels is not None:
+            conf = confusion_matrix(labels, mask, num_classes)
+            scores.confusion[k] = conf if scores.confusion[k] is None else scores.confusion[k] + conf
+        if image is not None:
+            scores.samples[k].append((position, image, mask, labels))
+    return scores
+
+
+def collect_results(path: str | Path, ground_truth_topic: str = GROUND_TRUTH_TOPIC, max_gap_s: float = DEFAULT_MAX_GAP_S,
+                    samples: int = 0, num_classes: int = len(CLASS_NAMES)) -> list[SequenceResult]:
+    """One :class:`SequenceResult` per sequence of the bag at ``path`` (see the module doc); ``samples``
+    frames per sequence are kept for the segmentation strip plot."""
+    from vlocnetpp_core.evaluate import _sample_positions, sequence_name
+
+    with BagReader(path) as reader:
+        frames = read_matched_frames(reader, ground_truth_topic, max_gap_s)
+        where = {s: (k, p) for k, rng in enumerate(frames.sequences) for p, s in enumerate(frames.stamps[rng].tolist())}
+        sample_stamps = {int(frames.stamps[rng[p]]) for rng in frames.sequences for p in _sample_positions(len(rng), samples)}
+        seg = score_segmentation(reader, where, sample_stamps, num_classes)
+    results = []
+    for k, rng in enumerate(frames.sequences):
+        rel = relative_odometry(frames.odom_t[rng], frames.odom_q[rng])
+        results.append(SequenceResult(
+            name=sequence_name(k), stamps=frames.stamps[rng] / 1e9,
+            true_t=frames.true_t[rng], true_q=frames.true_q[rng], pred_t=frames.pred_t[rng], pred_q=frames.pred_q[rng],
+            rel_t=None if rel is None else rel[0], rel_q=None if rel is None else rel[1],
+            confusion=seg.confusion[k], ms=None, samples=tuple(s[1:] for s in sorted(seg.samples[k], key=lambda s: s[0])),
+        ))
+    return results
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("bag", metavar="BAG", help="bag with ground truth and /vlocnet/* outputs (e.g. written by 'vlocnetpp replay')")
+    p.add_argument("--json", default=None, metavar="F", help="write the metrics as JSON to F")
+    p.add_argument("--plots", default=None, metavar="DIR", help="write PNG plots (trajectories, errors, confusion matrix, segmentation strip)")
+    p.add_argument("--trajectories", default=None, metavar="DIR", help="write TUM trajectories per sequence")
+    p.add_argument("--ground-truth-topic", default=GROUND_TRUTH_TOPIC, help=f"ground-truth poses (default {GROUND_TRUTH_TOPIC})")
+    p.add_argument("--max-gap-s", type=float, default=DEFAULT_MAX_GAP_S,
+                   help=f"a stamp gap longer than this starts a new sequence (default {DEFAULT_MAX_GAP_S:g} s)")
+    p.add_argument("--threshold-m", type=float, default=0.5, help="translation threshold of the second pose accuracy (default 0.5 m)")
+    p.add_argument("--threshold-deg", type=float, default=5.0, help="rotation threshold of the second pose accuracy (default 5 deg)")
+    p.add_argument("--odometry-lengths", default=None, metavar="L1,L2,...",
+                   help="KITTI-style segment lengths in metres (default: 10%%..80%% of the shortest sequence's path)")
+    p.add_argument("--samples", type=int, default=3, metavar="K", help="frames per sequence in the segmentation strip plot (default 3)")
+
+
+def run(args: argparse.Namespace) -> int:
+    from vlocnetpp_core.evaluate import _positive, format_report, parse_lengths, write_json, write_trajectories
+
+    threshold = (_positive(args.threshold_m, "--threshold-m"), _positive(args.threshold_deg, "--threshold-deg"))
+    thresholds = list(DEFAULT_THRESHOLDS[:1]) + ([threshold] if accuracy_key(*threshold) != accuracy_key(*DEFAULT_THRESHOLDS[0]) else [])
+    if not (math.isfinite(args.max_gap_s) and args.max_gap_s > 0):
+        raise UserError(f"--max-gap-s must be a positive number of seconds, got {args.max_gap_s}")
+    if args.samples < 0:
+        raise UserError(f"--samples must be >= 0, got {args.samples}")
+    results = collect_results(args.bag, args.ground_truth_topic, args.max_gap_s, args.samples if args.plots else 0)
+    report = evaluate_sequences(results, thresholds, parse_lengths(args.odometry_lengths), CLASS_NAMES)
+    report["meta"] = {"bag": str(args.bag)}
+    print(format_report(report, {r.name: len(r.stamps) for r in results}))
+    if any(r.rel_t is None for r in results):
+        print(f"note: {ODOMETRY_TOPIC} missing for some frames: no odometry metrics for those sequences", file=sys.stderr)
+    if args.json:
+        write_json(args.json, report)
+        print(f"metrics: {args.json}")
+    if args.trajectories:
+        write_trajectories(args.trajectories, results)
+        print(f"trajectories (TUM): {args.trajectories}")
+    if args.plots:
+        from vlocnetpp_core.plots import write_plots
+
+        write_plots(args.plots, results, CLASS_NAMES)
+        print(f"plots: {args.plots}")
+    return 0

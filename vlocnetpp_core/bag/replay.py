@@ -1,0 +1,229 @@
+"""``vlocnetpp replay``: run the localizer over every image of a bag and write an output bag.
+
+The output bag holds every input topic unchanged plus, per processed image (stamp of the image):
+
+===================== ========================= ==============================================
+``/vlocnet/pose``         ``geometry_msgs/PoseStamped`` global pose ``T_map,cam`` in ``map``
+``/vlocnet/odometry``     ``nav_msgs/Odometry``         accumulated odometry in ``odom``, child = the image frame
+``/vlocnet/segmentation`` ``sensor_msgs/Image``         ``mono8`` class ids at the image resolution
+===================== ========================= ==============================================
+
+In process (default) the images are read in log-time order and given to
+:class:`~vlocnetpp_core.localizer.Localizer` (the node's code path) with the intrinsics of the
+latest ``/camera/camera_info``; the localizer resets its temporal state itself on stamp gaps
+longer than ``--max-gap-s`` (the converter leaves 10 s between sequences). Messages that share a
+log time are handled together, so a frame's camera info or depth is used whatever order the bag
+stores them in. With ``--through-node`` the real ROS node runs as a subprocess and the bag is
+played to it over DDS (:mod:`vlocnetpp_ros.replay_bridge`, imported only then); both paths give
+the same poses for the same frames.
+
+Frames the localizer rejects (unsupported encoding, truncated data, ...) are skipped and counted.
+The output is written like the converter's: one ``.mcap`` file, renamed into place when complete.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from collections import Counter
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from vlocnetpp_core.bag import messages
+from vlocnetpp_core.bag.bagfile import BagReader, BagWriter, sigterm_as_interrupt
+from vlocnetpp_core.bag.convert import CAMERA_INFO_TOPIC, COMPRESSED_TOPIC, DEPTH_TOPIC, IMAGE_TOPIC, MAP_FRAME
+from vlocnetpp_core.errors import DataError, UserError
+
+POSE_TOPIC = "/vlocnet/pose"
+ODOMETRY_TOPIC = "/vlocnet/odometry"
+SEGMENTATION_TOPIC = "/vlocnet/segmentation"
+OUTPUT_TOPICS = {POSE_TOPIC: messages.POSE_STAMPED, ODOMETRY_TOPIC: messages.ODOMETRY, SEGMENTATION_TOPIC: messages.IMAGE}
+ODOM_FRAME = "odom"
+DEFAULT_MAX_GAP_S = 1.0  # the Localizer's and the node's default
+
+
+@dataclass
+class ReplaySummary:
+    """What a replay did: images ``processed``, ``skipped`` per reason, ``resets`` per reason (in process only),
+    ``wall_s`` spent replaying and ``startup_s`` spent starting the node (through the node only)."""
+
+    path: Path
+    processed: int = 0
+    skipped: Counter = field(default_factory=Counter)
+    resets: Counter = field(default_factory=Counter)
+    wall_s: float = 0.0
+    startup_s: float = 0.0
+
+    def format(self) -> str:
+        text = f"wrote {self.path}: {self.processed} frames localized in {self.wall_s:.1f} s ({self.processed / max(self.wall_s, 1e-9):.1f} frames/s)"
+        if self.startup_s:
+            text += f", after {self.startup_s:.1f} s of node start-up"
+        if self.resets:
+            text += "\n  temporal state resets: " + ", ".join(f"{k} {v}" for k, v in sorted(self.resets.items()))
+        if self.skipped:
+            text += "\n  skipped frames: " + ", ".join(f"{k} {v}" for k, v in sorted(self.skipped.items()))
+        return text
+
+
+def choose_image_topic(topics: dict[str, str], wanted: str | None, path: Path) -> str:
+    """``wanted``, else ``/camera/image_raw``, else ``/camera/image_raw/compressed``, else the only image topic."""
+    images = [t for t, ty in topics.items() if ty in (messages.IMAGE, messages.COMPRESSED_IMAGE) and t not in OUTPUT_TOPICS]
+    if wanted is not None:
+        if topics.get(wanted) not in (messages.IMAGE, messages.COMPRESSED_IMAGE):
+            raise DataError(path, f"--image-topic {wanted}: no Image or CompressedImage topic of that name (image topics: {', '.join(images) or 'none'})")
+        return wanted
+    for t in (IMAGE_TOPIC, COMPRESSED_TOPIC):
+        if t in topics:
+            return t
+    candidates = [t for t in images if t not in (DEPTH_TOPIC, "/camera/semantic")]
+    if len(candidates) != 1:
+        raise DataError(path, f"cannot tell the camera topic; pass --image-topic (image topics: {', '.join(images) or 'none'})")
+    return candidates[0]
+
+
+def groups_by_log_time(stream: Iterable[tuple[str, int, Any]]) -> Iterator[list[tuple[str, int, Any]]]:
+    """Consecutive messages with the same log time, as lists."""
+    group: list = []
+    for item in stream:
+        if group and item[1] != group[0][1]:
+            yield group
+            group = []
+        group.append(item)
+    if group:
+        yield group
+
+
+def output_messages(result, image_msg: Any) -> list[tuple[str, Any]]:
+    """The ``/vlocnet/*`` messages of a :class:`~vlocnetpp_core.localizer.LocalizerResult` with the stamp and frame of ``image_msg``."""
+    ns, camera = messages.stamp_ns(image_msg), image_msg.header.frame_id
+    return [
+        (POSE_TOPIC, messages.pose_stamped(ns, MAP_FRAME, result.t, result.q)),
+        (ODOMETRY_TOPIC, messages.odometry(ns, ODOM_FRAME, camera, result.odom_t, result.odom_q, result.linear, result.angular,
+                                           result.odom_covariance, result.twist_covariance)),
+        (SEGMENTATION_TOPIC, messages.image(ns, camera, result.mask, "mono8")),
+    ]
+
+
+def copy_topics(reader: BagReader, writer: BagWriter) -> None:
+    """Declare every input topic (except old ``/vlocnet/*`` outputs, which the replay replaces) on ``writer``."""
+    for conn in reader.connections:
+        if conn.topic not in OUTPUT_TOPICS and not writer.has_topic(conn.topic):
+            writer.add_topic(conn.topic, conn.msgtype, conn.msgdef.data, conn.digest)
+    for topic, msgtype in OUTPUT_TOPICS.items():
+        writer.add_topic(topic, msgtype)
+
+
+def replay(bag: str | Path, out: str | Path, localizer, image_topic: str | None = None, use_depth: bool = False,
+           force: bool = False, progress: bool = True) -> ReplaySummary:
+    """Run ``localizer`` over every image of ``bag`` in log-time order and write ``out`` (see module doc)."""
+    from tqdm import tqdm
+
+    from vlocnetpp_core.preprocess import FrameError, depth_to_metres
+
+    summary = ReplaySummary(Path(out))
+    start = time.perf_counter()
+    with BagReader(bag) as reader:
+        topics = reader.topics
+        topic = choose_image_topic(topics, image_topic, reader.path)
+        if use_depth and DEPTH_TOPIC not in topics:
+            raise DataError(reader.path, f"--use-depth: the bag has no {DEPTH_TOPIC} topic")
+        decoded = {topic, CAMERA_INFO_TOPIC} | ({DEPTH_TOPIC} if use_depth else set())
+        intrinsics = None
+        depth_by_stamp: dict[int, Any] = {}
+        bar = tqdm(total=reader.count(topic), unit="frame", desc="replay", disable=not progress, file=sys.stderr)
+        with sigterm_as_interrupt(), BagWriter(out, force=force) as writer, bar:
+            copy_topics(reader, writer)
+            for group in groups_by_log_time(reader.messages(raw=True)):
+                images = []
+                for t, ns, raw in group:
+                    if t in OUTPUT_TOPICS:
+                        continue
+                    writer.write_raw(t, ns, raw)
+                    if t not in decoded:
+                        continue
+                    msg = messages.deserialize(raw, topics[t])
+                    if t == CAMERA_INFO_TOPIC:
+                        intrinsics = messages.intrinsics_from_camera_info(msg)
+                    elif t == DEPTH_TOPIC:
+                        depth_by_stamp[messages.stamp_ns(msg)] = msg
+                        while len(depth_by_stamp) > 16:
+                            del depth_by_stamp[min(depth_by_stamp)]
+                    else:
+                        images.append((ns, msg))
+                for ns, msg in images:
+                    try:
+                        rgb = messages.any_image_to_rgb(msg)
+                        depth_msg = depth_by_stamp.pop(messages.stamp_ns(msg), None) if use_depth else None
+                        depth = None if depth_msg is None else depth_to_metres(messages.image_to_array(depth_msg), depth_msg.encoding)
+                        result = localizer.step(rgb, "rgb8", messages.stamp_ns(msg) / 1e9, depth=depth, intrinsics=intrinsics)
+                    except FrameError as err:
+                        summary.skipped[err.reason] += 1
+                        bar.update(1)
+                        continue
+                    if result.reset_reason is not None:
+                        summary.resets[result.reset_reason] += 1
+                    for out_topic, out_msg in output_messages(result, msg):
+                        writer.write(out_topic, ns, out_msg)
+                    summary.processed += 1
+                    bar.update(1)
+    summary.wall_s = time.perf_counter() - start
+    return summary
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("bag", metavar="BAG", help="input bag (.mcap file, or a rosbag2 folder) with camera images")
+    p.add_argument("--checkpoint", required=True, help="checkpoint (NAME.safetensors or NAME; the NAME.json sidecar next to it)")
+    p.add_argument("--out", required=True, metavar="OUT.mcap", help="output bag: the input topics plus /vlocnet/pose, /vlocnet/odometry, /vlocnet/segmentation")
+    p.add_argument("--image-topic", default=None, help="camera topic (default /camera/image_raw, else /camera/image_raw/compressed)")
+    p.add_argument("--through-node", action="store_true", help="run the real ROS node (console script 'localizer') and play the bag to it over DDS")
+    p.add_argument("--rate", default=None, metavar="HZ|max",
+                   help="--through-node: publish at the bag's rate (default), at HZ frames/s, or 'max': the next image when the previous pose came back")
+    p.add_argument("--max-gap-s", type=float, default=DEFAULT_MAX_GAP_S, help=f"reset the temporal state after a stamp gap longer than this (default {DEFAULT_MAX_GAP_S:g} s)")
+    p.add_argument("--use-depth", action="store_true", help=f"give {DEPTH_TOPIC} to the localizer for warping instead of the predicted depth")
+    p.add_argument("--device", default="cpu", help="torch device (default cpu)")
+    p.add_argument("--force", action="store_true", help="replace OUT.mcap if it exists")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def parse_rate(text: str | None) -> float | None:
+    """``None`` -> None (the bag's rate), ``"max"`` -> ``math.inf``, ``"HZ"`` -> a positive float."""
+    if text is None:
+        return None
+    if text.strip().lower() == "max":
+        return math.inf
+    try:
+        hz = float(text)
+    except ValueError:
+        raise UserError(f"--rate must be a number of Hz or 'max', got {text!r}") from None
+    if not (math.isfinite(hz) and hz > 0):
+        raise UserError(f"--rate must be a positive number of Hz or 'max', got {text!r}")
+    return hz
+
+
+def run(args: argparse.Namespace) -> int:
+    if not (math.isfinite(args.max_gap_s) and args.max_gap_s > 0):
+        raise UserError(f"--max-gap-s must be a positive number of seconds, got {args.max_gap_s}")
+    rate = parse_rate(args.rate)
+    if rate is not None and not args.through_node:
+        raise UserError("--rate only applies with --through-node (in process every frame is processed as fast as possible)")
+    if Path(args.out).resolve() == Path(args.bag).resolve():
+        raise UserError(f"--out {args.out} is the input bag")
+    if Path(args.out).exists() and not args.force:
+        raise UserError(f"{args.out}: exists already (use --force to replace it)")
+    if args.through_node:
+        from vlocnetpp_ros.replay_bridge import replay_through_node
+
+        summary = replay_through_node(args.bag, args.out, args.checkpoint, image_topic=args.image_topic, rate_hz=rate,
+                                      max_gap_s=args.max_gap_s, use_depth=args.use_depth, device=args.device,
+                                      force=args.force, progress=not args.no_progress)
+    else:
+        from vlocnetpp_core.localizer import Localizer
+
+        localizer = Localizer.from_checkpoint(args.checkpoint, device=args.device, max_gap_s=args.max_gap_s)
+        summary = replay(args.bag, args.out, localizer, args.image_topic, args.use_depth, args.force, progress=not args.no_progress)
+    print(summary.format())
+    return 0
