@@ -129,3 +129,26 @@ def test_replay_errors_are_one_line(setup, tmp_path, capsys):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.mcap"]
     assert main(["evaluate-bag", str(setup / "in.mcap")]) == 2  # no localizer outputs in the input bag
     assert "/vlocnet/pose" in capsys.readouterr().err
+
+
+def test_use_depth_gives_the_bag_depth_to_the_localizer(setup, tmp_path):
+    from vlocnetpp_core.bag.replay import replay
+    from vlocnetpp_core.data import open_dataset
+    from vlocnetpp_core.localizer import Localizer
+
+    localizer = Localizer.from_checkpoint(setup / "model")
+    given = []
+    real_step = localizer.step
+
+    def recording_step(image, encoding, stamp, depth=None, intrinsics=None):
+        given.append((stamp, depth, intrinsics))
+        return real_step(image, encoding, stamp, depth=depth, intrinsics=intrinsics)
+
+    localizer.step = recording_step
+    summary = replay(setup / "in.mcap", tmp_path / "d.mcap", localizer, use_depth=True, progress=False)
+    index = open_dataset(setup / "ds", "deeploc", "test")
+    assert summary.processed == len(index) == len(given)
+    for (stamp, depth, intrinsics), i in zip(given, range(len(index)), strict=True):
+        frame = index.load(i)
+        assert stamp == pytest.approx(frame.stamp, abs=1e-9) and intrinsics == frame.intrinsics
+        np.testing.assert_array_equal(depth, frame.depth)
