@@ -1,0 +1,659 @@
+"""The procedural campus: ground, buildings, vegetation, street furniture, distant hills, routes.
+
+``Campus(scene)`` is a pure function of the scene name: the same name gives the same campus
+(geometry, textures, routes), bit for bit. The campus is about 100 m (x, east) by 120 m
+(y, north) like DeepLoc's 110 x 130 m: a ring road with a cross street splits it into a south
+and a north block; rows of buildings with repetitive facades line the outside of the ring
+(one row of identical dormitories), the blocks hold a large hall with a plaza, a tower, a glass
+pavilion and lawns. Repeated trees, lamps and facades make places look alike; a few unique
+landmarks (tower, glass pavilion, mural, fountain, sculpture, kiosk, billboard, bus shelter)
+and unique ground marks (manholes, patches) keep it learnable. Outside the perimeter fence lie
+fields and, 320 m out, a ring of hills (both Background).
+
+Robot routes (``Campus.circuits``) go around the south and the north block along the ring road
+and the cross street; cars use the roads, pedestrians the sidewalks.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from vlocnetpp_core.data.synth import textures as tx
+from vlocnetpp_core.data.synth.ground import RES, GroundMap
+from vlocnetpp_core.data.synth.lighting import Lighting, sky_color
+from vlocnetpp_core.data.synth.prims import BOX, ELLIPSOID, Prims, PrimsBuilder
+from vlocnetpp_core.data.synth.route import rounded_rectangle
+
+# class ids (vlocnetpp_core.classes)
+BACKGROUND, SKY, ROAD, SIDEWALK, GRASS, VEGETATION, BUILDING, POLE, DYNAMIC, OTHER = range(10)
+
+WIDTH_M, DEPTH_M = 100.0, 120.0  # campus extent (x, y)
+ROAD_HALF = 3.0  # road half-width
+SIDEWALK_EDGE = 5.5  # outer edge of a sidewalk from the road centreline
+LANES = {"right lane": 1.5, "left lane": -1.5, "right sidewalk": 4.25, "left sidewalk": -4.25}
+HILLS_RADIUS = 320.0
+HILLS_MAX_M = 38.0
+
+CAR_SIZE = (4.4, 1.8, 1.5)  # length, width, height
+PERSON_SIZE = (0.5, 0.34, 1.75)
+CAR_PAINTS = (0xB03A2E, 0x1F4E79, 0xD5D8DC, 0x1C1C1C, 0x7D8C2F, 0xE3B23C, 0x6C3483, 0x5D6D7E)
+SHIRTS = (0xC0392B, 0x2471A3, 0x27AE60, 0xF4D03F, 0x6E2C00, 0xECF0F1, 0x17202A, 0xAF7AC5)
+
+
+@functools.lru_cache(maxsize=2)
+def load_campus(scene: str) -> Campus:
+    """A shared :class:`Campus` per scene name (building one takes about a second)."""
+    return Campus(scene)
+
+
+def stable_seed(*parts) -> int:
+    """A seed from strings/ints that does not depend on Python's hash randomisation."""
+    return int.from_bytes(hashlib.sha256(repr(parts).encode()).digest()[:8], "little")
+
+
+@dataclass(frozen=True)
+class DynamicObject:
+    """A car or a pedestrian at one instant: appearance index, centre (metres) and yaw (radians)."""
+
+    kind: str  # "car" | "person"
+    appearance: int
+    x: float
+    y: float
+    yaw: float
+
+
+STYLES = {
+    "dorm": tx.FacadeStyle(wall=0xC9B99A, window=0x2E3A44, frame=0xF2EFE6, floor_height=3.0, window_width=1.2, window_height=1.4, pitch=2.7),
+    "brick": tx.FacadeStyle(wall=0x94472F, frame=0xE8E4DA, floor_height=3.6, window_width=1.5, window_height=1.9, pitch=3.3, band=0xB8A58C),
+    "concrete": tx.FacadeStyle(wall=0xA6A6A0, frame=0x5A5F63, floor_height=3.5, window_height=1.3, pitch=3.6, ribbon=True, window_refl=0.5),
+    "white": tx.FacadeStyle(wall=0xE4E2DA, frame=0x8A8F94, floor_height=3.3, window_height=1.5, pitch=3.0, ribbon=True, band=0x8A8F94),
+    "dark": tx.FacadeStyle(wall=0x4B4F54, frame=0xC9CCCF, floor_height=3.4, window_width=1.8, pitch=3.2, ground_floor="shop", window_refl=0.45),
+    "yellow": tx.FacadeStyle(wall=0xD6B14E, frame=0xFFFFFF, floor_height=3.2, window_width=1.3, window_height=1.6, pitch=2.9),
+    "terracotta": tx.FacadeStyle(wall=0xB9603A, frame=0xF0E6D8, floor_height=3.2, window_width=1.0, window_height=1.8, pitch=2.2, band=0xE8D8C0),
+    "glass": tx.FacadeStyle(wall=0x6F7B80, window=0x35505E, frame=0xA8B0B4, floor_height=3.8, pitch=2.4, curtain=True),
+}
+
+
+class Campus:
+    """Everything static about one scene. Build once, render many frames from it.
+
+    Attributes: ``prims`` (static geometry), ``ground`` (:class:`GroundMap`), ``atlas``
+    (RGBA mip levels) and ``cutout`` (hole mask), ``circuits`` (robot routes, counter-clockwise
+    centrelines), ``car_routes`` / ``walk_routes`` (for moving objects), ``parking`` (slots:
+    ``(x, y, yaw)``), ``hills`` (height per azimuth bin), ``buildings`` (footprints for the map).
+    """
+
+    def __init__(self, scene: str = "campus"):
+        if not scene or not isinstance(scene, str):
+            raise ValueError("scene must be a non-empty string")
+        self.scene = scene
+        rng = np.random.default_rng(stable_seed("campus", scene))
+        self._b = PrimsBuilder()
+        self._atlas = tx.AtlasBuilder()
+        self._caps: dict[int, tuple[float, float]] = {}
+        self.buildings: list[np.ndarray] = []
+        self.landmarks: list[tuple[str, float, float]] = []
+        self._layout_roads(rng)
+        self._paint_ground_labels(rng)
+        self._compute_clearance()
+        self._place_buildings(rng)
+        self._place_vegetation(rng)
+        self._place_furniture(rng)
+        self._make_dynamic_appearances(rng)
+        self._paint_ground_albedo(rng)
+        self._make_far_field(rng)
+        self.prims: Prims = self._b.build()
+        self.atlas, self.cutout = self._atlas.build()
+        del self._b, self._atlas, self.clearance, self._occupied
+
+    # ================================================================= roads
+    def _layout_roads(self, rng: np.random.Generator) -> None:
+        j = lambda lo, hi: float(rng.uniform(lo, hi))  # noqa: E731
+        self.X0, self.X1 = 22 + j(-2, 2), 78 + j(-2, 2)
+        self.Y0, self.Y1 = 20 + j(-1.5, 1.5), 100 + j(-1.5, 1.5)
+        self.Ym = 60 + j(-5, 5)
+        self.Xs = j(self.X0 + 15, self.X1 - 15)  # south entrance
+        self.Ye = j(self.Ym + 13, self.Y1 - 13)  # east entrance
+        self.corner = 8.0
+        X0, X1, Y0, Y1, Ym, r = self.X0, self.X1, self.Y0, self.Y1, self.Ym, self.corner
+        ring = rounded_rectangle("ring", X0, Y0, X1, Y1, r)
+        self.circuits = {
+            "south": rounded_rectangle("south", X0, Y0, X1, Ym, r),
+            "north": rounded_rectangle("north", X0, Ym, X1, Y1, r),
+        }
+        self.car_routes = [ring, self.circuits["south"], self.circuits["north"]]
+        self.road_lines = [
+            ring.points,
+            np.array([[X0, Ym], [X1, Ym]]),
+            np.array([[self.Xs, -80.0], [self.Xs, Y0]]),
+            np.array([[X1, self.Ye], [180.0, self.Ye]]),
+        ]
+        self.walk_routes = [c.offset(d) for c in self.car_routes for d in (-4.25, 4.25)]
+
+    def _paint_ground_labels(self, rng: np.random.Generator) -> None:
+        g = self.ground = GroundMap(-45.0, -45.0, WIDTH_M + 90.0, DEPTH_M + 90.0, BACKGROUND)
+        L = g.labels
+        g.polygon(L, [(0, 0), (WIDTH_M, 0), (WIDTH_M, DEPTH_M), (0, DEPTH_M)], GRASS)
+        for pts in self.road_lines + [c.points for c in self.circuits.values()]:  # circuits round the corners
+            g.polyline(L, pts, 2 * SIDEWALK_EDGE, SIDEWALK, closed=len(pts) > 2)
+        # plaza in the south block in front of the hall, path across the north lawn
+        X0, X1, Ym = self.X0, self.X1, self.Ym
+        self.plaza = (X0 + 6, self.Y0 + 6, X0 + 6 + rng.uniform(14, 18), Ym - 6)
+        px0, py0, px1, py1 = self.plaza
+        g.polygon(L, [(px0, py0), (px1, py0), (px1, py1), (px0, py1)], SIDEWALK)
+        xp = float(rng.uniform(X0 + 14, X1 - 14))
+        g.polyline(L, [(xp, Ym + 5), (xp, self.Y1 - 5)], 2.6, SIDEWALK)
+        g.polyline(L, [(X1 - 5, self.Ye - 4), (xp, self.Ye - 4)], 2.6, SIDEWALK)
+        # parking lot in the east band
+        self.parking_y = float(rng.uniform(self.Y0 + 4, self.Ym - 30))
+        pk = (X1 + 8.0, self.parking_y, min(WIDTH_M - 2.0, X1 + 17.5), self.parking_y + 26.0)
+        self.parking_box = pk
+        g.polygon(L, [(pk[0], pk[1]), (pk[2], pk[1]), (pk[2], pk[3]), (pk[0], pk[3])], ROAD)
+        g.polyline(L, [(X1, pk[1] + 13), (pk[0] + 1, pk[1] + 13)], 6.0, ROAD)
+        for pts in self.road_lines:
+            g.polyline(L, pts, 2 * ROAD_HALF, ROAD, closed=len(pts) > 2)
+        slots = []
+        for y in np.arange(pk[1] + 1.6, pk[3] - 1.2, 2.7):
+            if abs(y - (pk[1] + 13)) > 3.5:
+                slots.append((pk[0] + 4.5, float(y), 0.0))
+        self.parking = slots
+
+    def _compute_clearance(self) -> None:
+        """Distance (metres) from every ground cell to the nearest place the robot may drive."""
+        g = self.ground
+        corridor = np.zeros_like(g.labels)
+        for c in self.circuits.values():
+            g.polyline(corridor, c.points, 2 * (SIDEWALK_EDGE - 0.2), 1, closed=True)
+        self.clearance = cv2.distanceTransform((corridor == 0).astype(np.uint8), cv2.DIST_L2, 5) * RES
+        self._occupied = np.zeros_like(g.labels)
+
+    def label_at(self, x: float, y: float) -> int:
+        """Ground class id at world ``(x, y)``."""
+        c, r = self.ground.to_raster(x, y)
+        ci, ri = int(round(float(c))), int(round(float(r)))
+        if 0 <= ri < self.ground.rows and 0 <= ci < self.ground.cols:
+            return int(self.ground.labels[ri, ci])
+        return BACKGROUND
+
+    def _free(self, x: float, y: float, radius: float, margin: float = 0.4) -> bool:
+        c, r = self.ground.to_raster(x, y)
+        ci, ri = int(round(float(c))), int(round(float(r)))
+        if not (0 <= ri < self.clearance.shape[0] and 0 <= ci < self.clearance.shape[1]):
+            return True
+        if self.clearance[ri, ci] < radius + margin:
+            return False
+        rr = int(math.ceil((radius + margin) / RES))
+        return not self._occupied[max(0, ri - rr) : ri + rr + 1, max(0, ci - rr) : ci + rr + 1].any()
+
+    def _occupy(self, x: float, y: float, yaw: float, length: float, width: float) -> None:
+        self.ground.rect(self._occupied, x, y, yaw, length, width, 1)
+
+    def _cap(self, color: int) -> tuple[float, float]:
+        if color not in self._caps:
+            self._caps[color] = self._atlas.swatch(color)
+        return self._caps[color]
+
+    # ================================================================= buildings
+    def _building(self, rng, x, y, yaw, length, width, height, style: str, mural: int | None = None) -> None:
+        strip = self._atlas.add(tx.building_strip(rng, length, width, height, STYLES[style], mural))
+        self._b.box(x, y, yaw, length, width, 0.0, height, BUILDING, strip, self._cap(STYLES[style].wall))
+        c, s = math.cos(yaw), math.sin(yaw)
+        ex, ey = np.array([c, s]) * length / 2, np.array([-s, c]) * width / 2
+        ctr = np.array([x, y])
+        self.buildings.append(np.array([ctr - ex - ey, ctr + ex - ey, ctr + ex + ey, ctr - ex + ey]))
+        self._occupy(x, y, yaw, length + 1.0, width + 1.0)
+
+    def _row_of_buildings(self, rng, axis: str, lo: float, hi: float, c0: float, c1: float, styles: list[str], heights, skip=()) -> None:
+        """Buildings along ``axis`` ('x' or 'y') between ``lo`` and ``hi``, across-axis extent ``[c0, c1]``."""
+        s = lo + rng.uniform(0, 2)
+        k = 0
+        while s + 12 <= hi:
+            length = float(rng.uniform(16, 28))
+            end = min(s + length, hi)
+            blocked = [b for b in skip if b[0] < end and b[1] > s]
+            if blocked:
+                s = max(b[1] for b in blocked) + 1.0
+                continue
+            if end - s < 12:
+                break
+            depth = (c1 - c0) - rng.uniform(0, 2.0)
+            mid_c = (c0 + c1) / 2
+            h = float(rng.uniform(*heights))
+            style = styles[k % len(styles)]
+            mural = 1 if (k == 1 and style != "dorm") else None
+            ctr = (s + end) / 2
+            if axis == "y":
+                self._building(rng, mid_c, ctr, math.pi / 2, end - s, depth, h, style, mural)
+            else:
+                self._building(rng, ctr, mid_c, 0.0, end - s, depth, h, style, mural)
+            k += 1
+            s = end + rng.uniform(5, 11)
+
+    def _place_buildings(self, rng: np.random.Generator) -> None:
+        X0, X1, Y0, Y1, Ym = self.X0, self.X1, self.Y0, self.Y1, self.Ym
+        others = ["brick", "concrete", "white", "dark", "yellow"]
+        rng.shuffle(others)
+        # west: a row of identical dormitories (perceptual aliasing)
+        self._row_of_buildings(rng, "y", 3, DEPTH_M - 3, 3, X0 - 9, ["dorm"], (9, 12))
+        pk = self.parking_box
+        self._row_of_buildings(rng, "y", 3, DEPTH_M - 3, X1 + 9, WIDTH_M - 3, [others[0], others[1]], (8, 16),
+                               skip=[(pk[1] - 2, pk[3] + 2), (self.Ye - 9, self.Ye + 9)])
+        self._row_of_buildings(rng, "x", X0 - 5, X1 + 5, 3, Y0 - 9, [others[2], others[3]], (7, 14), skip=[(self.Xs - 10, self.Xs + 10)])
+        self._row_of_buildings(rng, "x", X0 - 5, X1 + 5, Y1 + 9, DEPTH_M - 3, [others[4], others[0]], (8, 15))
+        # south block: the hall next to the plaza, with a mural
+        px1 = self.plaza[2]
+        hx0, hx1 = px1 + 2.5, X1 - 9.5
+        hy0, hy1 = Y0 + 9.5, Ym - 9.5
+        self._building(rng, (hx0 + hx1) / 2, (hy0 + hy1) / 2, 0.0, hx1 - hx0, hy1 - hy0, float(rng.uniform(11, 14)), "concrete", mural=3)
+        self.landmarks.append(("hall", (hx0 + hx1) / 2, (hy0 + hy1) / 2))
+        # north block: a tower and a glass pavilion
+        tx_ = float(rng.uniform(X0 + 15, X0 + 20))
+        ty_ = float(rng.uniform(Ym + 14, Y1 - 14))
+        self._building(rng, tx_, ty_, 0.0, 10.0, 10.0, float(rng.uniform(28, 34)), "terracotta")
+        self.landmarks.append(("tower", tx_, ty_))
+        gx = float(rng.uniform(X1 - 18, X1 - 15))
+        gy = float(rng.uniform(Ym + 13, Y1 - 13))
+        self._building(rng, gx, gy, math.radians(float(rng.uniform(-12, 12))), 13.0, 8.5, float(rng.uniform(6.5, 8.5)), "glass")
+        self.landmarks.append(("glass pavilion", gx, gy))
+
+    # ================================================================= vegetation
+    def _place_vegetation(self, rng: np.random.Generator) -> None:
+        greens = [0x3E6B2A, 0x4C7A30, 0x35602A, 0x5A8236]
+        self._foliage = []
+        for gcol in greens:
+            for a, b in ((2.2, 2.6), (3.0, 3.4)):
+                self._foliage.append((a, b, self._atlas.add(tx.foliage_strip(rng, a, 2 * b, gcol))))
+        self._bark = self._atlas.add(tx.bark_strip(rng, 0.25, 9.0))
+        hedge_strip = self._atlas.add(tx.foliage_strip(rng, 6.0, 1.3, 0x3B5E27))
+        hedge_cap = self._cap(0x46692E)
+
+        def tree(x, y, big: bool, shade: int | None = None) -> bool:
+            a = float(rng.uniform(2.6, 3.2) if big else rng.uniform(1.8, 2.3))
+            if not self._free(x, y, 0.3) or not self._free(x, y, 0.3 + 0.3 * a, margin=-0.2 * a):
+                return False
+            b = a * float(rng.uniform(1.05, 1.3))
+            bottom = float(rng.uniform(2.4, 3.0))
+            fi = (int(rng.integers(4)) if shade is None else shade) * 2 + (1 if big else 0)
+            fa, fb, strip = self._foliage[fi]
+            self._b.cylinder(x, y, float(rng.uniform(0.14, 0.22)), 0.0, bottom + b * 0.6, VEGETATION, self._bark, self._cap(0x5B4636))
+            self._b.ellipsoid(x, y, bottom + b, a, b, VEGETATION, strip)
+            self._occupy(x, y, 0.0, 0.8, 0.8)
+            return True
+
+        # alleys along the ring and the cross street: same species, same spacing
+        X0, X1, Y0, Y1, Ym = self.X0, self.X1, self.Y0, self.Y1, self.Ym
+        sides = [((X0, Y0), (X1, Y0)), ((X1, Y0), (X1, Y1)), ((X1, Y1), (X0, Y1)), ((X0, Y1), (X0, Y0)), ((X0, Ym), (X1, Ym))]
+        for (ax, ay), (bx, by) in sides:
+            d = np.array([bx - ax, by - ay])
+            n_len = float(np.linalg.norm(d))
+            d /= n_len
+            nrm = np.array([-d[1], d[0]])
+            shade = int(rng.integers(4))
+            for off in (7.6, -7.6):
+                for s in np.arange(12.0, n_len - 11.0, 10.0):
+                    if rng.random() < 0.15:
+                        continue
+                    p = np.array([ax, ay]) + d * (s + rng.uniform(-0.7, 0.7)) + nrm * off
+                    tree(float(p[0]), float(p[1]), big=False, shade=shade)
+        # groups on the lawns and around the campus
+        for _ in range(70):
+            x, y = float(rng.uniform(2, WIDTH_M - 2)), float(rng.uniform(2, DEPTH_M - 2))
+            if self.label_at(x, y) == GRASS:
+                tree(x, y, big=bool(rng.random() < 0.6))
+        # hedges along the inner lawns
+        for (ax, ay), (bx, by) in sides:
+            d = np.array([bx - ax, by - ay])
+            n_len = float(np.linalg.norm(d))
+            d /= n_len
+            nrm = np.array([-d[1], d[0]])  # left of travel: the inner side for the counter-clockwise ring
+            s = 14.0
+            while s < n_len - 14:
+                seg = float(rng.uniform(5, 12))
+                if rng.random() < 0.5:
+                    c = np.array([ax, ay]) + d * (s + seg / 2) + nrm * 6.6
+                    yaw = math.atan2(d[1], d[0])
+                    if self._free(float(c[0]), float(c[1]), 0.1, margin=0.3) and self._free_along(c, d, seg):
+                        self._b.box(float(c[0]), float(c[1]), yaw, seg, 0.9, 0.0, float(rng.uniform(0.9, 1.3)), VEGETATION, hedge_strip, hedge_cap)
+                        self._occupy(float(c[0]), float(c[1]), yaw, seg, 0.9)
+                s += seg + float(rng.uniform(3, 9))
+
+    def _free_along(self, c: np.ndarray, d: np.ndarray, length: float) -> bool:
+        return all(self._free(float(p[0]), float(p[1]), 0.45, margin=0.2) for p in (c + d * f * length / 2 for f in (-1, -0.5, 0.5, 1)))
+
+    # ================================================================= furniture
+    def _place_furniture(self, rng: np.random.Generator) -> None:
+        X0, X1, Y0, Y1, Ym = self.X0, self.X1, self.Y0, self.Y1, self.Ym
+        b = self._b
+        pole_strip = self._atlas.add(tx.metal_strip(rng, 0.09, 6.0, 0x4A4F55))
+        thin_strip = self._atlas.add(tx.metal_strip(rng, 0.08, 3.0, 0x8C9196, bands=False))
+        bollard_strip = self._atlas.add(tx.metal_strip(rng, 0.1, 1.0, 0x3C3F44, bands=True))
+        grey = self._cap(0x4A4F55)
+        head_strip = self._atlas.add(tx.panel_strip(rng, 0.8, 0.3, 0.2, [0x3A3F45]))
+        # street lamps: every 20 m, alternating sides (repetitive)
+        sides = [((X0, Y0), (X1, Y0)), ((X1, Y0), (X1, Y1)), ((X1, Y1), (X0, Y1)), ((X0, Y1), (X0, Y0)), ((X0, Ym), (X1, Ym))]
+        for i, ((ax, ay), (bx, by)) in enumerate(sides):
+            d = np.array([bx - ax, by - ay])
+            n_len = float(np.linalg.norm(d))
+            d /= n_len
+            nrm = np.array([-d[1], d[0]])
+            for k, s in enumerate(np.arange(10.0 + 3 * i, n_len - 9.0, 20.0)):
+                side = 1 if (k + i) % 2 == 0 else -1
+                p = np.array([ax, ay]) + d * s + nrm * 6.4 * side
+                if not self._free(float(p[0]), float(p[1]), 0.1, margin=0.3):
+                    continue
+                b.cylinder(float(p[0]), float(p[1]), 0.09, 0.0, 5.6, POLE, pole_strip, grey)
+                h = p - nrm * 0.45 * side
+                b.box(float(h[0]), float(h[1]), math.atan2(nrm[1], nrm[0]), 0.8, 0.3, 5.45, 5.65, POLE, head_strip, grey)
+                self._occupy(float(p[0]), float(p[1]), 0.0, 0.5, 0.5)
+        # traffic signs at the junctions and entrances (pole + panel)
+        sign_colors = [[0x1F5FAF, 0xFFFFFF], [0xC0392B, 0xFFFFFF, 0xC0392B], [0xF1C40F, 0x1C1C1C], [0xFFFFFF, 0x1F5FAF, 0xFFFFFF]]
+        sign_strips = [self._atlas.add(tx.panel_strip(rng, 0.75, 0.06, 0.75, c)) for c in sign_colors]
+        spots = [(X0, Ym, 1, 1), (X1, Ym, -1, -1), (self.Xs, Y0, 1, -1), (X1, self.Ye, 1, -1), (X0, Y0, 1, 1), (X1, Y1, -1, -1)]
+        for k, (x, y, sx, sy) in enumerate(spots):
+            px, py = x + sx * 6.6, y + sy * 6.6
+            if not self._free(px, py, 0.1, margin=0.3):
+                continue
+            b.cylinder(px, py, 0.045, 0.0, 2.75, POLE, thin_strip, grey)
+            yaw = float(rng.uniform(0, math.pi))
+            b.box(px + 0.08 * math.cos(yaw + math.pi / 2), py + 0.08 * math.sin(yaw + math.pi / 2), yaw, 0.75, 0.06, 1.95, 2.7, OTHER,
+                  sign_strips[k % len(sign_strips)], self._cap(0x9A9A9A))
+            self._occupy(px, py, 0.0, 1.0, 1.0)
+        # benches and bins along the sidewalks
+        bench = self._atlas.add(tx.panel_strip(rng, 1.8, 0.6, 0.5, [0x8B5A2B, 0x6E4420]))
+        back = self._atlas.add(tx.panel_strip(rng, 1.8, 0.08, 0.45, [0x8B5A2B, 0x6E4420, 0x8B5A2B]))
+        bin_strip = self._atlas.add(tx.metal_strip(rng, 0.28, 1.0, 0x2F5D50, bands=True))
+        for (ax, ay), (bx, by) in sides:
+            d = np.array([bx - ax, by - ay])
+            n_len = float(np.linalg.norm(d))
+            d /= n_len
+            nrm = np.array([-d[1], d[0]])
+            for s in np.arange(18.0, n_len - 15, float(rng.uniform(22, 30))):
+                side = 1 if rng.random() < 0.5 else -1
+                p = np.array([ax, ay]) + d * s + nrm * 6.5 * side
+                yaw = math.atan2(d[1], d[0])
+                q = p + nrm * 0.4 * side
+                if self._free(float(p[0]), float(p[1]), 1.0, margin=0.2):
+                    b.box(float(p[0]), float(p[1]), yaw, 1.8, 0.6, 0.0, 0.48, OTHER, bench, self._cap(0x8B5A2B))
+                    b.box(float(q[0]), float(q[1]), yaw, 1.8, 0.08, 0.48, 0.95, OTHER, back, self._cap(0x6E4420))
+                    self._occupy(float(p[0]), float(p[1]), yaw, 2.0, 1.4)
+                    r = p + d * 1.6
+                    if self._free(float(r[0]), float(r[1]), 0.3, margin=0.1):
+                        b.cylinder(float(r[0]), float(r[1]), 0.28, 0.0, 0.95, OTHER, bin_strip, self._cap(0x1F3D35))
+                        self._occupy(float(r[0]), float(r[1]), 0.0, 0.7, 0.7)
+        # perimeter fence with gaps for the entrances
+        fence_h = 1.9
+        gaps = {"s": (self.Xs - 7, self.Xs + 7), "e": (self.Ye - 7, self.Ye + 7)}
+
+        def fence(x0, y0, x1, y1, h=fence_h, color=0x59636B, spacing=2.5, mesh=0.14):
+            L = math.hypot(x1 - x0, y1 - y0)
+            if L < 1.0:
+                return
+            strip = self._atlas.add(tx.fence_strip(rng, L, 0.06, h, color, spacing, mesh))
+            b.box((x0 + x1) / 2, (y0 + y1) / 2, math.atan2(y1 - y0, x1 - x0), L, 0.06, 0.0, h, POLE, strip, self._cap(color), cutout=True)
+
+        e = 0.6
+        fence(e, e, gaps["s"][0], e)
+        fence(gaps["s"][1], e, WIDTH_M - e, e)
+        fence(WIDTH_M - e, e, WIDTH_M - e, gaps["e"][0])
+        fence(WIDTH_M - e, gaps["e"][1], WIDTH_M - e, DEPTH_M - e)
+        fence(WIDTH_M - e, DEPTH_M - e, e, DEPTH_M - e)
+        fence(e, DEPTH_M - e, e, e)
+        # a low railing on the far side of the parking lot
+        pk = self.parking_box
+        fence(pk[2] - 0.3, pk[1] + 0.5, pk[2] - 0.3, pk[3] - 0.5, h=1.2, color=0x8C9196, spacing=2.0, mesh=0.5)
+        # plaza: fountain, kiosk, bollards, bike racks
+        px0, py0, px1, py1 = self.plaza
+        cx, cy = (px0 + px1) / 2, (py0 + py1) / 2
+        stone = self._atlas.add(tx.metal_strip(rng, 2.4, 0.6, 0xB5AFA3))
+        if self._free(cx, cy, 2.4):
+            b.cylinder(cx, cy, 2.4, 0.0, 0.55, OTHER, stone, self._cap(0x4F86A6))
+            self._occupy(cx, cy, 0.0, 5.0, 5.0)
+            self.landmarks.append(("fountain", cx, cy))
+        kx, ky = px0 + 2.5, py1 - 3.0
+        if self._free(kx, ky, 1.8):
+            kiosk = self._atlas.add(tx.panel_strip(rng, 3.0, 2.2, 2.6, [0xE74C3C, 0xF9E79F, 0xE74C3C, 0xFFFFFF]))
+            b.box(kx, ky, 0.0, 3.0, 2.2, 0.0, 2.6, OTHER, kiosk, self._cap(0x922B21))
+            self._occupy(kx, ky, 0.0, 3.2, 2.4)
+            self.landmarks.append(("kiosk", kx, ky))
+        for y in np.arange(py0 + 1.0, py1 - 0.5, 1.6):
+            if self._free(px1 + 0.3, float(y), 0.1, margin=0.1):
+                b.cylinder(px1 + 0.3, float(y), 0.1, 0.0, 0.9, POLE, bollard_strip, grey)
+        rack = tx.Canvas(2 * (4.0 + 0.08), 0.85, 0x9AA0A6)
+        rack.rect(0, 0, rack.width_m, 0.85, hole=True)
+        for u in np.arange(0.0, rack.width_m, 0.7):
+            rack.rect(u, 0, u + 0.06, 0.85, hole=False)
+        rack.rect(0, 0, rack.width_m, 0.06, hole=False)
+        rack_strip = self._atlas.add(rack)
+        for k, fp in enumerate(self.buildings):
+            if k % 3 != 1:
+                continue
+            c = fp.mean(0)
+            edge = fp[1] - fp[0]
+            yaw = math.atan2(edge[1], edge[0])
+            nrm = np.array([-math.sin(yaw), math.cos(yaw)])
+            for sgn in (1, -1):
+                p = c + nrm * sgn * (np.linalg.norm(fp[3] - fp[0]) / 2 + 1.8)
+                if self._free(float(p[0]), float(p[1]), 2.1, margin=0.1):
+                    b.box(float(p[0]), float(p[1]), yaw, 4.0, 0.08, 0.0, 0.85, OTHER, rack_strip, self._cap(0x9AA0A6), cutout=True)
+                    self._occupy(float(p[0]), float(p[1]), yaw, 4.2, 0.4)
+                    break
+        # sculpture on the north lawn
+        for _ in range(40):
+            sx, sy = float(rng.uniform(X0 + 10, X1 - 10)), float(rng.uniform(Ym + 9, Y1 - 9))
+            if self._free(sx, sy, 2.0):
+                red = self._atlas.add(tx.panel_strip(rng, 0.9, 0.9, 5.0, [0xC0392B, 0xE74C3C]))
+                yel = self._atlas.add(tx.metal_strip(rng, 0.6, 3.4, 0xF4D03F))
+                b.box(sx, sy, math.radians(30), 0.9, 0.9, 0.0, 5.0, OTHER, red, self._cap(0xC0392B))
+                b.cylinder(sx + 1.4, sy + 0.4, 0.6, 0.0, 3.4, OTHER, yel, self._cap(0xF4D03F))
+                self._occupy(sx, sy, 0.0, 4.0, 3.0)
+                self.landmarks.append(("sculpture", sx, sy))
+                break
+        # billboard near the east entrance and a bus shelter near the south entrance
+        bx_, by_ = X1 + 8.5, self.Ye + 8.5
+        if self._free(bx_, by_, 2.6, margin=0.1):
+            colors = [int(c) for c in rng.choice([0x1ABC9C, 0xE67E22, 0x9B59B6, 0x2C3E50, 0xF1C40F, 0xE74C3C], 4, replace=False)]
+            board = self._atlas.add(tx.panel_strip(rng, 5.0, 0.15, 2.5, colors))
+            b.box(bx_, by_, math.pi / 2, 5.0, 0.15, 2.4, 4.9, OTHER, board, self._cap(0x2C3E50))
+            for sgn in (1, -1):
+                b.cylinder(bx_, by_ + sgn * 2.0, 0.07, 0.0, 2.45, POLE, thin_strip, grey)
+            self._occupy(bx_, by_, math.pi / 2, 5.2, 0.6)
+            self.landmarks.append(("billboard", bx_, by_))
+        sx, sy = self.Xs + 12.0, self.Y0 - 7.4
+        if self._free(sx, sy, 1.9, margin=0.1):
+            glass = self._atlas.add(tx.glass_strip(3.6, 0.05, 2.2))
+            side = self._atlas.add(tx.glass_strip(1.4, 0.05, 2.2))
+            roof = self._atlas.add(tx.panel_strip(rng, 3.9, 1.7, 0.12, [0xBFC5C9]))
+            b.box(sx, sy - 0.6, 0.0, 3.6, 0.05, 0.1, 2.3, OTHER, glass, self._cap(0x9AA3A8))
+            for sgn in (1, -1):
+                b.box(sx + sgn * 1.8, sy + 0.05, math.pi / 2, 1.3, 0.05, 0.1, 2.3, OTHER, side, self._cap(0x9AA3A8))
+            b.box(sx, sy, 0.0, 3.9, 1.7, 2.3, 2.42, OTHER, roof, self._cap(0xBFC5C9))
+            self._occupy(sx, sy, 0.0, 4.0, 1.8)
+            self.landmarks.append(("bus shelter", sx, sy))
+
+    # ================================================================= moving things
+    def _make_dynamic_appearances(self, rng: np.random.Generator) -> None:
+        L, W, H = CAR_SIZE
+        self.car_strips = [self._atlas.add(tx.car_strip(rng, L, W, H, p)) for p in CAR_PAINTS]
+        self.car_caps = [self._cap(p) for p in CAR_PAINTS]
+        pl, pw, ph = PERSON_SIZE
+        self.person_strips = [self._atlas.add(tx.person_strip(rng, pl, pw, ph, s, int(rng.choice([0x1B2631, 0x34495E, 0x5D4037, 0x283747])))) for s in SHIRTS]
+        self.person_cap = self._cap(0x3A2A1E)
+
+    def dynamic_prims(self, objects) -> Prims:
+        """Primitives of cars and pedestrians (label Dynamic) at their current positions."""
+        b = PrimsBuilder()
+        for o in objects:
+            if o.kind == "car":
+                i = o.appearance % len(self.car_strips)
+                b.box(o.x, o.y, o.yaw, CAR_SIZE[0], CAR_SIZE[1], 0.0, CAR_SIZE[2], DYNAMIC, self.car_strips[i], self.car_caps[i])
+            elif o.kind == "person":
+                i = o.appearance % len(self.person_strips)
+                b.box(o.x, o.y, o.yaw, PERSON_SIZE[0], PERSON_SIZE[1], 0.0, PERSON_SIZE[2], DYNAMIC, self.person_strips[i], self.person_cap)
+            else:
+                raise ValueError(f"unknown dynamic object kind {o.kind!r} (car, person)")
+        return b.build()
+
+    # ================================================================= ground colour
+    def _paint_ground_albedo(self, rng: np.random.Generator) -> None:
+        g = self.ground
+        base = {
+            BACKGROUND: (0x8A865E, 0.10, 0.16),
+            ROAD: (0x5A5C5E, 0.10, 0.06),
+            SIDEWALK: (0xA9A49A, 0.06, 0.05),
+            GRASS: (0x5E8C3A, 0.16, 0.10),
+        }
+        X0, X1, Y0, Y1, Ym = self.X0, self.X1, self.Y0, self.Y1, self.Ym
+        dash = []
+        for route in (self.circuits["south"], self.circuits["north"]):
+            dash.append(route.points)
+        manholes = [(float(rng.uniform(X0, X1)), Y0 + rng.uniform(-1.5, 1.5)) for _ in range(3)]
+        manholes += [(X0 + rng.uniform(-1.5, 1.5), float(rng.uniform(Y0, Y1))) for _ in range(3)]
+        manholes += [(float(rng.uniform(X0, X1)), Ym + rng.uniform(-1.5, 1.5)) for _ in range(3)]
+        patches = [(float(rng.uniform(X0 - 2, X1 + 2)), float(rng.uniform(Y0 - 2, Y1 + 2)), float(rng.uniform(1, 4)), float(rng.uniform(1, 3)))
+                   for _ in range(25)]
+
+        def patterns(albedo: np.ndarray) -> None:
+            L = g.labels
+            x, y = g.world_grid()
+            f = np.ones(L.shape, np.float32)  # brightness factor of the patterns below
+            side = L == SIDEWALK
+            f[side & ((np.mod(x, 0.6) < 0.04) | (np.mod(y, 0.6) < 0.04))] = 0.82  # tile joints
+            f[(L == GRASS) & (np.mod(x + 0.3 * y, 3.0) < 1.5)] = 1.06  # mowing stripes
+            outside = L == BACKGROUND
+            quad = (x > WIDTH_M / 2) ^ (y > DEPTH_M / 2)
+            f[outside & quad & (np.mod(x * 0.8 + y * 0.6, 1.6) < 0.5)] = 0.88  # crop rows
+            f[outside & ~quad & (np.mod(y, 2.2) < 0.6)] = 1.07
+            patch = np.zeros_like(L)
+            for xx, yy, w, h in patches:
+                g.rect(patch, xx, yy, float(rng.uniform(0, math.pi)), w, h, 1)
+            f[(patch > 0) & (L == ROAD)] = 0.8  # asphalt repairs
+            albedo *= f[..., None]
+            px0, py0, px1, py1 = self.plaza
+            r0, r1 = (int(v) for v in np.clip(np.round(g.to_raster(0, np.array([py0, py1]))[1]), 0, g.rows))
+            c0, c1 = (int(v) for v in np.clip(np.round(g.to_raster(np.array([px0, px1]), 0)[0]), 0, g.cols))
+            xs, ys = x[:, c0:c1], y[r0:r1]
+            big = ((np.mod(xs - px0, 2.4) < 1.2) ^ (np.mod(ys - py0, 2.4) < 1.2)) & side[r0:r1, c0:c1]
+            albedo[r0:r1, c0:c1][big] *= np.array([1.08, 1.0, 0.9], np.float32)  # plaza slabs
+            curb = cv2.dilate(side.astype(np.uint8), np.ones((3, 3), np.uint8)) & (L == ROAD)
+            albedo[curb > 0] = (0.72, 0.71, 0.68)
+            canvas = albedo
+            white = (0.86, 0.86, 0.84)
+            yellow = (0.85, 0.72, 0.25)
+            for pts in dash:  # dashed centre lines: 3 m dash, 3 m gap
+                seg = np.linalg.norm(np.diff(np.vstack([pts, pts[:1]]), axis=0), axis=1)
+                phase = np.floor(np.concatenate([[0], np.cumsum(seg)])[:-1] / 3.0).astype(int)
+                for k in np.unique(phase[phase % 2 == 0]):
+                    g.polyline(canvas, pts[phase == k], 0.14, yellow)
+            for route in (self.car_routes[0],):
+                for d in (-2.75, 2.75):
+                    g.polyline(canvas, route.offset(d).points, 0.12, white, closed=True)
+            g.polyline(canvas, [(X0 + 2.75, Ym - 2.75), (X1 - 2.75, Ym - 2.75)], 0.12, white)
+            g.polyline(canvas, [(X0 + 2.75, Ym + 2.75), (X1 - 2.75, Ym + 2.75)], 0.12, white)
+            # zebra crossings next to the junctions and entrances
+            for (x0, y0, ax) in ((X0 + 9, Ym, "x"), (X1 - 9, Ym, "x"), (X0, Ym + 9, "y"), (X1, Ym - 9, "y"), (self.Xs + 8, Y0, "x"), (X1, self.Ye + 8, "y")):
+                for k in np.arange(-2.5, 2.6, 1.0):
+                    if ax == "x":
+                        g.rect(canvas, x0, y0 + k, 0.0, 3.0, 0.5, white)
+                    else:
+                        g.rect(canvas, x0 + k, y0, 0.0, 0.5, 3.0, white)
+            # parking bays
+            pk = self.parking_box
+            for yy in np.arange(pk[1] + 0.25, pk[3], 2.7):
+                g.polyline(canvas, [(pk[0] + 2.2, yy), (pk[0] + 6.8, yy)], 0.1, white)
+            for mx, my in manholes:
+                g.circle(canvas, mx, my, 0.38, (0.22, 0.22, 0.23))
+                g.circle(canvas, mx, my, 0.3, (0.32, 0.31, 0.3))
+            # turn arrows on the cross street
+            for x0, sgn in ((X0 + 16, 1), (X1 - 16, -1)):
+                yy = Ym - 1.5 * sgn
+                g.rect(canvas, x0, yy, 0.0, 3.0, 0.18, white)
+                g.polygon(canvas, [(x0 + 1.5 * sgn, yy - 0.45), (x0 + 2.3 * sgn, yy), (x0 + 1.5 * sgn, yy + 0.45)], white)
+
+        g.paint_albedo(rng, base, patterns)
+
+    # ================================================================= sky, hills
+    def _make_far_field(self, rng: np.random.Generator) -> None:
+        n = 720
+        theta = np.arange(n) * 2 * math.pi / n
+        h = np.zeros(n)
+        for k in range(1, 12):
+            h += rng.normal() / k**1.2 * np.sin(k * theta + rng.uniform(0, 2 * math.pi))
+        h = (h - h.min()) / max(np.ptp(h), 1e-9)
+        self.hills = (8.0 + (HILLS_MAX_M - 8.0) * h).astype(np.float32)
+        self.hills_rgb = tx.hills_texture(rng, 2048, 64)
+        self.clouds = tx.sky_clouds(rng, 2048, 256)
+        sk = np.zeros(n)
+        for k in range(2, 14):
+            sk += rng.normal() / k * np.sin(k * theta + rng.uniform(0, 2 * math.pi))
+        self.skyline = (0.12 + 0.1 * (sk - sk.min()) / max(np.ptp(sk), 1e-9)).astype(np.float32)
+        self.center = np.array([WIDTH_M / 2, DEPTH_M / 2])
+
+    # ================================================================= lighting
+    def ground_light(self, lighting: Lighting) -> np.ndarray:
+        """Irradiance factor of the ground ``(rows/2, cols/2)`` float32 with the shadows of the static scene."""
+        return self._cached("ground", lighting, lambda: _ground_light(self, lighting))
+
+    def sky_panorama(self, lighting: Lighting) -> np.ndarray:
+        """Sky colour ``(256, 2048, 3)`` float32 over elevation (rows, 0 to 90 deg) and azimuth (columns, 0 to 360 deg)."""
+        def make():
+            rows, cols = self.clouds.shape
+            el = ((np.arange(rows) + 0.5) * (math.pi / 2 / rows)).astype(np.float32)[:, None]
+            az = ((np.arange(cols) + 0.5) * (2 * math.pi / cols)).astype(np.float32)[None, :]
+            return np.ascontiguousarray(sky_color(lighting, el + 0 * az, az + 0 * el, self.clouds), dtype=np.float32)
+
+        return self._cached("sky", lighting, make)
+
+    def _cached(self, what: str, lighting: Lighting, make):
+        cache = self.__dict__.setdefault("_light_cache", {})
+        key = (what, lighting)
+        if key not in cache:
+            if len(cache) >= 4:
+                cache.pop(next(iter(cache)))
+            cache[key] = make()
+        return cache[key]
+
+
+def _ground_light(campus: Campus, lighting: Lighting) -> np.ndarray:
+    g = campus.ground
+    shape = (g.rows // 2, g.cols // 2)
+    shadow = np.zeros(shape, np.uint8)
+    e = max(lighting.sun_elevation, math.radians(3.0))
+    k = 1.0 / math.tan(e)
+    sd = lighting.sun_direction()
+    away = -np.array([sd[0], sd[1]]) / max(math.hypot(sd[0], sd[1]), 1e-9)
+    P = campus.prims
+
+    def to_px(xy: np.ndarray) -> np.ndarray:
+        c, r = g.to_raster(xy[:, 0], xy[:, 1])
+        return np.round(np.stack([(c + 0.5) / 2 - 0.5, (r + 0.5) / 2 - 0.5], -1) * 16).astype(np.int32)
+
+    for i in range(len(P)):
+        kind = P.kind[i]
+        ctr = np.array([P.cx[i], P.cy[i]])
+        if kind == ELLIPSOID:
+            zc = (P.z0[i] + P.z1[i]) / 2
+            bv = (P.z1[i] - P.z0[i]) / 2
+            c = ctr + away * zc * k
+            along = math.hypot(P.a[i], bv * k)
+            ang = math.degrees(math.atan2(away[1], away[0]))
+            cc = to_px(c[None])[0]
+            cv2.ellipse(shadow, (int(cc[0]), int(cc[1])), (int(along / (2 * RES) * 16), int(P.a[i] / (2 * RES) * 16)), ang, 0, 360, 1, -1, cv2.LINE_8, 4)
+            continue
+        if kind == BOX:
+            ca, sa = P.cos[i], P.sin[i]
+            ex, ey = np.array([ca, sa]) * P.a[i], np.array([-sa, ca]) * P.b[i]
+            foot = np.array([ctr - ex - ey, ctr + ex - ey, ctr + ex + ey, ctr - ex + ey])
+        else:
+            ang = np.arange(8) * math.pi / 4
+            foot = ctr + P.a[i] * np.stack([np.cos(ang), np.sin(ang)], 1) / math.cos(math.pi / 8)
+        pts = np.vstack([foot + away * P.z0[i] * k, foot + away * P.z1[i] * k])
+        cv2.fillConvexPoly(shadow, cv2.convexHull(to_px(pts).astype(np.int32)), 1, cv2.LINE_8, 4)
+    soft = cv2.GaussianBlur(shadow.astype(np.float32), (5, 5), 1.2)
+    direct = lighting.sun * max(0.0, math.sin(lighting.sun_elevation))
+    return (lighting.ambient + direct * (1.0 - soft)).astype(np.float32)

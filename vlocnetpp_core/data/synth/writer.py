@@ -1,0 +1,204 @@
+"""Write a synthetic campus dataset in the DeepLoc layout, atomically.
+
+Layout (the contract with ``vlocnetpp_core.data.deeploc``)::
+
+    OUT/DeepLoc/{train,test}/LeftImages/Image_<id>.png        RGB (BGR on disk, as cv2 writes)
+    OUT/DeepLoc/{train,test}/labels/Image_<id>.png            uint8 class ids 0..9
+    OUT/DeepLoc/{train,test}/labels_colorized/Image_<id>.png  colour preview
+    OUT/DeepLoc/{train,test}/poses.txt                        '# comment', header, 'Image_<id>.png x y z qw qx qy qz'
+    OUT/DeepLoc_stereo/{train,test}/DepthImages/Image_<id>.pfm  float32 metres, sky = 0
+    OUT/intrinsics.json  OUT/scene.json  OUT/preview/{mosaic,map}.png
+
+Loop ``k`` of a split has ids ``k * 10000 + 1, k * 10000 + 2, ...``. Everything is written to a
+temporary folder next to ``OUT`` and renamed into place at the end, so an interrupted or failed
+run leaves no ``OUT`` behind. The same ``(scene, seed, sizes)`` give the same bytes.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from vlocnetpp_core.classes import colorize
+from vlocnetpp_core.data.pfm import write_pfm
+from vlocnetpp_core.data.synth.campus import load_campus
+from vlocnetpp_core.data.synth.drive import plan_visit
+from vlocnetpp_core.data.synth.preview import mosaic, top_down_map
+from vlocnetpp_core.data.synth.render import render_frame
+from vlocnetpp_core.errors import DataError, UserError
+from vlocnetpp_core.intrinsics import Intrinsics
+
+GENERATOR_VERSION = 1
+DEFAULT_FRAMES_PER_LOOP = 175
+ID_STRIDE = 10000
+MOSAIC_ROWS_PER_SPLIT = 4
+
+
+def default_intrinsics(width: int, height: int) -> Intrinsics:
+    """The DeepLoc default camera (ZED, f = 700 px at 1280 wide) scaled to ``width``; square pixels."""
+    f = 700.0 * width / 1280.0
+    return Intrinsics(f, f, width / 2 - 0.5, height / 2 - 0.5, int(width), int(height))
+
+
+def format_pose(name: str, t: np.ndarray, q: np.ndarray) -> str:
+    return f"{name} {t[0]:.6f} {t[1]:.6f} {t[2]:.6f} {q[0]:.8f} {q[1]:.8f} {q[2]:.8f} {q[3]:.8f}"
+
+
+def _check_args(scene: str, seed: int, train_loops: int, test_loops: int, frames_per_loop: int, size, frame_interval) -> tuple[int, int]:
+    if not isinstance(scene, str) or not scene.strip():
+        raise UserError("--scene must be a non-empty name")
+    if int(seed) < 0:
+        raise UserError(f"--seed must be >= 0, got {seed}")
+    if train_loops < 0 or test_loops < 0 or train_loops + test_loops == 0:
+        raise UserError(f"need at least one loop (--loops {train_loops}, --test-loops {test_loops})")
+    if max(train_loops, test_loops) > 99:
+        raise UserError("at most 99 loops per split")
+    if not 1 <= frames_per_loop < ID_STRIDE:
+        raise UserError(f"--frames-per-loop must be between 1 and {ID_STRIDE - 1}, got {frames_per_loop}")
+    try:
+        w, h = (int(v) for v in size)
+    except (TypeError, ValueError) as err:
+        raise UserError(f"--size must be WIDTHxHEIGHT, got {size!r}") from err
+    if not (16 <= w <= 4096 and 16 <= h <= 4096):
+        raise UserError(f"--size must be between 16x16 and 4096x4096, got {w}x{h}")
+    if frame_interval is not None and not frame_interval > 0:
+        raise UserError(f"--frame-interval must be positive, got {frame_interval}")
+    return w, h
+
+
+def render_dataset(
+    out: str | Path,
+    scene: str = "campus",
+    seed: int = 0,
+    train_loops: int = 4,
+    test_loops: int = 2,
+    frames_per_loop: int = DEFAULT_FRAMES_PER_LOOP,
+    size: tuple[int, int] = (320, 180),
+    force: bool = False,
+    progress: bool = True,
+    frame_interval: float | None = None,
+) -> dict:
+    """Render ``train_loops`` + ``test_loops`` visits of campus ``scene`` into ``out``; returns a summary dict.
+
+    ``frame_interval`` (seconds) fixes the time between frames (``0.05`` = 20 Hz video); by
+    default each loop's frames are spread over one lap of its circuit. Raises
+    :class:`UserError` for bad arguments or an existing ``out`` without ``force``.
+    """
+    w, h = _check_args(scene, seed, train_loops, test_loops, frames_per_loop, size, frame_interval)
+    out = Path(out)
+    if out.exists() and not force:
+        raise UserError(f"{out} already exists (use --force to replace it)")
+    if out.exists() and not out.is_dir():
+        raise UserError(f"{out} exists and is not a folder; not replacing it")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
+    try:
+        summary = _render_into(tmp, scene, int(seed), train_loops, test_loops, frames_per_loop, (w, h), progress, frame_interval)
+        if out.exists():
+            old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
+            os.replace(out, old / "data")
+            os.replace(tmp, out)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.replace(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    summary["out"] = str(out)
+    return summary
+
+
+def _render_into(root: Path, scene: str, seed: int, train_loops: int, test_loops: int, frames: int, size: tuple[int, int],
+                 progress: bool, frame_interval: float | None) -> dict:
+    from tqdm import tqdm
+
+    t_start = time.perf_counter()
+    campus = load_campus(scene)
+    K = default_intrinsics(*size)
+    (root / "intrinsics.json").write_text(json.dumps(K.to_dict(), indent=2) + "\n")
+    loops = {"train": train_loops, "test": test_loops}
+    total = (train_loops + test_loops) * frames
+    render_time = 0.0
+    loop_info = []
+    samples = []
+    trajectories = []
+    bar = tqdm(total=total, disable=not progress, unit="frame", desc=f"synth {scene}", dynamic_ncols=True)
+    try:
+        for split, n_loops in loops.items():
+            if n_loops == 0:
+                continue
+            img_dir = root / "DeepLoc" / split / "LeftImages"
+            lab_dir = root / "DeepLoc" / split / "labels"
+            col_dir = root / "DeepLoc" / split / "labels_colorized"
+            dep_dir = root / "DeepLoc_stereo" / split / "DepthImages"
+            for d in (img_dir, lab_dir, col_dir, dep_dir):
+                d.mkdir(parents=True, exist_ok=True)
+            lines = [f"# synthetic campus {scene} seed {seed}", "ImageName x y z qw qx qy qz"]
+            picks = set(np.linspace(0, n_loops * frames - 1, MOSAIC_ROWS_PER_SPLIT).round().astype(int).tolist())
+            for loop in range(n_loops):
+                visit = plan_visit(campus, seed, split, loop, frames, frame_interval)
+                info = visit.info()
+                info["first_id"] = loop * ID_STRIDE + 1
+                loop_info.append(info)
+                trajectories.append((split, f"loop {loop}: {visit.pattern.circuit} {'cw' if visit.pattern.clockwise else 'ccw'}, "
+                                            f"{visit.pattern.lane}, {visit.lighting.name}", visit.t[:, :2]))
+                for i in range(frames):
+                    name = f"Image_{loop * ID_STRIDE + i + 1}"
+                    line = format_pose(name + ".png", visit.t[i], visit.q[i])
+                    vals = [float(v) for v in line.split()[1:]]  # render exactly the pose that is written
+                    t0 = time.perf_counter()
+                    rgb, labels, depth = render_frame(campus, vals[:3], vals[3:], K, visit.lighting, visit.objects_at(i))
+                    render_time += time.perf_counter() - t0
+                    _imwrite(img_dir / f"{name}.png", rgb[..., ::-1])
+                    _imwrite(lab_dir / f"{name}.png", labels)
+                    _imwrite(col_dir / f"{name}.png", colorize(labels)[..., ::-1])
+                    write_pfm(dep_dir / f"{name}.pfm", depth)
+                    lines.append(line)
+                    if loop * frames + i in picks:
+                        samples.append((f"{split} loop {loop} {name}", rgb, labels, depth))
+                    bar.update(1)
+            (root / "DeepLoc" / split / "poses.txt").write_text("\n".join(lines) + "\n")
+    finally:
+        bar.close()
+    preview = root / "preview"
+    preview.mkdir()
+    _imwrite(preview / "mosaic.png", mosaic(samples)[..., ::-1])
+    _imwrite(preview / "map.png", top_down_map(campus, trajectories)[..., ::-1])
+    scene_info = {
+        "generator": "vlocnetpp synthetic campus",
+        "generator_version": GENERATOR_VERSION,
+        "scene": scene,
+        "seed": seed,
+        "size": list(size),
+        "frames_per_loop": frames,
+        "loops": loops,
+        "id_stride": ID_STRIDE,
+        "frame_interval_s": frame_interval,
+        "intrinsics": K.to_dict(),
+        "landmarks": [{"name": n, "x": round(x, 3), "y": round(y, 3)} for n, x, y in campus.landmarks],
+        "visits": loop_info,
+    }
+    (root / "scene.json").write_text(json.dumps(scene_info, indent=2, sort_keys=True) + "\n")
+    return {
+        "scene": scene,
+        "seed": seed,
+        "size": list(size),
+        "train_frames": train_loops * frames,
+        "test_frames": test_loops * frames,
+        "frames": total,
+        "seconds": time.perf_counter() - t_start,
+        "render_seconds": render_time,
+        "render_fps": total / render_time if render_time > 0 else float("nan"),
+    }
+
+
+def _imwrite(path: Path, img: np.ndarray) -> None:
+    if not cv2.imwrite(str(path), np.ascontiguousarray(img)):
+        raise DataError(path, "could not write the image (disk full or no permission?)")

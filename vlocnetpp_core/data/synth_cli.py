@@ -1,0 +1,54 @@
+"""``vlocnetpp synth OUT``: render the procedural campus as a DeepLoc-format dataset."""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import threading
+
+
+def _size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT, e.g. 320x180, got {text!r}") from err
+    return w, h
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from vlocnetpp_core.data.synth.writer import DEFAULT_FRAMES_PER_LOOP
+
+    parser.add_argument("out", metavar="OUT", help="output folder (must not exist unless --force)")
+    parser.add_argument("--scene", default="campus", help="campus to build: fixes geometry and textures (default: campus, the one the shipped model knows)")
+    parser.add_argument("--seed", type=int, default=0, help="varies the visits: driving patterns, lighting, moving objects (default: 0)")
+    parser.add_argument("--loops", type=int, default=4, help="train loops (default: 4; with 4 or more every circuit/direction is covered)")
+    parser.add_argument("--test-loops", type=int, default=2, help="test loops (default: 2)")
+    parser.add_argument("--frames-per-loop", type=int, default=DEFAULT_FRAMES_PER_LOOP, help=f"frames per loop (default: {DEFAULT_FRAMES_PER_LOOP})")
+    parser.add_argument("--size", type=_size, default=(320, 180), help="image size WIDTHxHEIGHT (default: 320x180)")
+    parser.add_argument("--frame-interval", type=float, default=None, metavar="SECONDS",
+                        help="time between frames, e.g. 0.05 for 20 Hz video (default: spread each loop's frames over one lap, ~1 m apart)")
+    parser.add_argument("--force", action="store_true", help="replace OUT if it exists")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _terminate(signum, frame):  # SIGTERM unwinds like Ctrl-C, so the partial output is removed
+    raise KeyboardInterrupt
+
+
+def run(args: argparse.Namespace) -> int:
+    from vlocnetpp_core.data.synth.writer import render_dataset
+
+    previous = signal.signal(signal.SIGTERM, _terminate) if threading.current_thread() is threading.main_thread() else None
+    try:
+        s = render_dataset(
+            args.out, scene=args.scene, seed=args.seed, train_loops=args.loops, test_loops=args.test_loops,
+            frames_per_loop=args.frames_per_loop, size=args.size, force=args.force, progress=not args.no_progress,
+            frame_interval=args.frame_interval,
+        )
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+    w, h = s["size"]
+    print(f"wrote {s['out']}: {args.loops} train + {args.test_loops} test loops, {s['frames']} frames at {w}x{h} "
+          f"(scene {s['scene']}, seed {s['seed']}) in {s['seconds']:.1f} s, rendering {s['render_fps']:.1f} frames/s")
+    return 0
