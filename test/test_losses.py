@@ -1,0 +1,140 @@
+"""Losses: known values on hand-made inputs, term switching, and real learning on a tiny fixed batch."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from model_fixtures import lite, random_clip_batch, single_thread
+
+from vlocnetpp_core.losses import VLocNetLoss, depth_loss, segmentation_loss
+from vlocnetpp_core.model import StepOutput, VLocNetPP, trainable_parameters
+
+IDENTITY_Q = [1.0, 0.0, 0.0, 0.0]
+
+
+def yaw(degrees: float) -> list[float]:
+    h = math.radians(degrees) / 2
+    return [math.cos(h), 0.0, 0.0, math.sin(h)]
+
+
+def pose_batch(t, q, rel_t, rel_q, frames: int, size=(2, 3)) -> dict[str, torch.Tensor]:
+    return {
+        "t": torch.tensor([t]), "q": torch.tensor([q]), "rel_t": torch.tensor([rel_t]), "rel_q": torch.tensor([rel_q]),
+        "labels": torch.full((1, frames, *size), 255), "depth": torch.zeros(1, frames, 1, *size),
+    }
+
+
+def test_localization_loss_known_values_in_se3_form():
+    # Predicted poses: frame 0 at the origin turned 90 deg about z, frame 1 one metre along world x.
+    outputs = [
+        StepOutput(xyz=torch.tensor([[0.0, 0.0, 0.0]]), quat=torch.tensor([yaw(90)])),
+        StepOutput(xyz=torch.tensor([[1.0, 0.0, 0.0]]), quat=torch.tensor([yaw(90)])),
+    ]
+    # Ground truth: frame 0 exact; frame 1 at (2, 2, 2), 3 m off, with the identity rotation.
+    # Relative motion in camera t-1 (SE(3) form): R0^T (x1 - x0) = (0, -1, 0), no rotation: exact.
+    batch = pose_batch(
+        t=[[0.0, 0.0, 0.0], [2.0, 2.0, 2.0]], q=[yaw(90), IDENTITY_Q],
+        rel_t=[[0.0, 0.0, 0.0], [0.0, -1.0, 0.0]], rel_q=[IDENTITY_Q, IDENTITY_Q], frames=2,
+    )
+    crit = VLocNetLoss("stl-loc")
+    loss, parts = crit(outputs, batch)
+    q_err = float(torch.tensor(yaw(90)).sub(torch.tensor(IDENTITY_Q)).norm()) / 2  # mean over the two frames
+    assert parts["x"].item() == pytest.approx(1.5)
+    assert parts["q"].item() == pytest.approx(q_err)
+    assert parts["x_rel"].item() == pytest.approx(0.0, abs=1e-6)  # a world-frame difference would give 1.41
+    assert parts["q_rel"].item() == pytest.approx(0.0, abs=1e-6)
+    # s_x = 0, s_q = -3 (paper init): L = L_x + L_q e^3 - 3 + L_x_rel + L_q_rel e^3 - 3
+    assert loss.item() == pytest.approx(1.5 + q_err * math.exp(3) - 3 - 3, rel=1e-5)
+    assert [n for n, _ in crit.named_parameters()] == ["s_x", "s_q", "s_x_rel", "s_q_rel"]
+
+
+def test_odometry_loss_skips_the_first_frame_and_uses_its_weights():
+    outputs = [
+        StepOutput(rel_xyz=torch.tensor([[9.0, 9.0, 9.0]]), rel_quat=torch.tensor([yaw(60)])),  # first frame: ignored
+        StepOutput(rel_xyz=torch.tensor([[0.0, 0.0, 1.0]]), rel_quat=torch.tensor([IDENTITY_Q])),
+    ]
+    batch = pose_batch(t=[[0.0] * 3] * 2, q=[IDENTITY_Q] * 2, rel_t=[[0.0] * 3, [0.0, 0.0, 3.0]], rel_q=[IDENTITY_Q, yaw(10)], frames=2)
+    crit = VLocNetLoss(("vo",))
+    with torch.no_grad():
+        crit.s_x_vo.fill_(math.log(2.0))
+    loss, parts = crit(outputs, batch)
+    q_err = float(torch.tensor(yaw(10)).sub(torch.tensor(IDENTITY_Q)).norm())
+    assert parts["x_vo"].item() == pytest.approx(2.0)
+    assert loss.item() == pytest.approx(2.0 / 2.0 + math.log(2.0) + q_err * math.exp(3) - 3, rel=1e-5)
+    with pytest.raises(ValueError, match="no loss term"):
+        crit(outputs[:1], batch)  # single-frame clips have no relative motion
+
+
+def test_segmentation_and_depth_losses_known_values():
+    logits = torch.zeros(1, 4, 2, 3)
+    labels = torch.tensor([[[0, 1, 255], [3, 255, 2]]])
+    total, count = segmentation_loss(logits, labels)
+    assert count == 4 and total.item() == pytest.approx(4 * math.log(4))
+    target = torch.tensor([[[[2.0, 0.0, 4.0], [float("nan"), 1.0, -1.0]]]])
+    pred = torch.full_like(target, 2.0) * torch.tensor([1.0, 1.0, math.e])  # exact, -, e off, -, 2x off, -
+    total, count = depth_loss(pred, target)
+    assert count == 3
+    assert total.item() == pytest.approx(abs(math.log(2 * math.e / 4)) + math.log(2.0), rel=1e-5)
+
+    outputs = [StepOutput(seg_logits=logits, depth=pred), StepOutput(seg_logits=logits, depth=pred)]
+    batch = {"labels": labels[:, None].expand(1, 2, 2, 3), "depth": target[:, None].expand(1, 2, 1, 2, 3)}
+    plain, parts = VLocNetLoss("stl-seg")(outputs, batch)
+    assert parts["seg"].item() == pytest.approx(math.log(4))
+    assert plain.item() == pytest.approx(parts["seg"].item() + parts["depth"].item())
+    # Without labelled pixels or valid depth a term is left out (its learned weight would otherwise drift).
+    empty = {"labels": torch.full((1, 2, 2, 3), 255), "depth": target[:, None].expand(1, 2, 1, 2, 3)}
+    _, parts = VLocNetLoss("mtl", learned_weighting=True)(
+        [StepOutput(xyz=torch.zeros(1, 3), quat=torch.tensor([IDENTITY_Q]), seg_logits=logits, depth=pred,
+                    rel_xyz=torch.zeros(1, 3), rel_quat=torch.tensor([IDENTITY_Q]))] * 2,
+        {**empty, "t": torch.zeros(1, 2, 3), "q": torch.tensor([[IDENTITY_Q] * 2]), "rel_t": torch.zeros(1, 2, 3),
+         "rel_q": torch.tensor([[IDENTITY_Q] * 2])},
+    )
+    assert "seg" not in parts and "depth" in parts
+
+
+def test_multitask_weighting_eq6():
+    crit = VLocNetLoss("mtl")
+    with torch.no_grad():
+        crit.s_seg.fill_(1.0)
+        crit.s_depth.fill_(-0.5)
+    logits = torch.zeros(1, 10, 2, 3)
+    labels = torch.zeros(1, 2, 2, 3, dtype=torch.long)
+    depth = torch.ones(1, 1, 2, 3)
+    out = StepOutput(xyz=torch.zeros(1, 3), quat=torch.tensor([IDENTITY_Q]), rel_xyz=torch.zeros(1, 3),
+                     rel_quat=torch.tensor([IDENTITY_Q]), seg_logits=logits, depth=depth)
+    batch = {"t": torch.zeros(1, 2, 3), "q": torch.tensor([[IDENTITY_Q] * 2]), "rel_t": torch.zeros(1, 2, 3),
+             "rel_q": torch.tensor([[IDENTITY_Q] * 2]), "labels": labels, "depth": depth[:, None].expand(1, 2, 1, 2, 3) * math.e}
+    loss, parts = crit([out, out], batch)
+    assert parts["loc"].item() == pytest.approx(-6.0) and parts["vo"].item() == pytest.approx(-3.0)
+    expected = -6.0 - 3.0 + math.log(10) * math.exp(-1.0) + 1.0 + 1.0 * math.exp(0.5) - 0.5
+    assert loss.item() == pytest.approx(expected, rel=1e-5)
+    with pytest.raises(ValueError, match="stage"):
+        VLocNetLoss("stl-depth")
+
+
+def test_optimiser_steps_drive_every_task_loss_down():
+    """Real learning: the lite network at a tiny input overfits a fixed two-clip batch in MTL."""
+    torch.manual_seed(0)
+    W, H = 64, 32
+    model = VLocNetPP(lite(dropout=0.0)).train()
+    crit = VLocNetLoss("mtl")
+    batch = random_clip_batch(2, 2, W, H, seed=7)
+    batch["labels"] = (torch.arange(W) * 4 // W).expand(2, 2, H, W).clone()  # four vertical bands: learnable
+    batch["depth"] = torch.linspace(2.0, 20.0, H)[:, None].expand(2, 2, 1, H, W).clone()
+    optimizer = torch.optim.Adam(list(trainable_parameters(model, "mtl")) + list(crit.parameters()), lr=2e-3)
+    keys = ("x", "q", "x_rel", "x_vo", "q_vo", "seg", "depth")
+    history = []
+    with single_thread():
+        for _ in range(120):
+            loss, parts = crit(model.forward_clip(batch["image"], batch["K"]), batch)
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.step()
+            history.append({k: parts[k].item() for k in keys})
+    first = {k: sum(h[k] for h in history[:5]) / 5 for k in keys}
+    last = {k: sum(h[k] for h in history[-5:]) / 5 for k in keys}
+    for k in keys:
+        assert last[k] < 0.5 * first[k], (k, first[k], last[k])
+    assert crit.s_seg.item() < 0  # the learned weight follows the shrinking loss

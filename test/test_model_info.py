@@ -1,0 +1,38 @@
+"""``vlocnetpp model-info``: JSON and table output through the real CLI entry point."""
+
+from __future__ import annotations
+
+import json
+
+import yaml
+
+from vlocnetpp_core.cli import main
+from vlocnetpp_core.model import STREAMS, VLocNetPP, load_model_config
+
+
+def test_model_info_json_counts_every_stream(capsys):
+    assert main(["model-info", "--config", "lite", "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    model = VLocNetPP(load_model_config("lite"))
+    assert info["params_total"] == sum(p.numel() for p in model.parameters())
+    assert set(info["params_per_stream"]) == set(STREAMS)
+    assert sum(info["params_per_stream"].values()) == info["params_total"]
+    assert info["input_size"] == list(load_model_config("lite").input_size)
+    assert info["params_trained_per_stage"]["mtl"] == info["params_total"]
+    assert info["params_trained_per_stage"]["stl-loc"] == info["params_per_stream"]["global"]
+
+
+def test_model_info_table_and_yaml_path(tmp_path, capsys):
+    cfg = load_model_config("lite").to_dict() | {"name": "no-fusion", "semantic_fusion": False, "input_size": [160, 96]}
+    path = tmp_path / "no_fusion.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    assert main(["model-info", "--config", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "'no-fusion'" in out and "160x96" in out and "semantic_fusion=off" in out
+    assert any(line.split() == ["fusion", "0"] for line in out.splitlines())
+
+
+def test_model_info_bad_config_is_one_line_error(tmp_path, capsys):
+    assert main(["model-info", "--config", str(tmp_path / "missing.yaml")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "missing.yaml" in err

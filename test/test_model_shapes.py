@@ -1,0 +1,127 @@
+"""Output shapes of every tap and head, for both configs and non-default input sizes; ablation switches."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import pytest
+import torch
+from model_fixtures import (
+    intrinsics,
+    lite,
+    one_thread,  # noqa: F401  (autouse: one thread per test)
+)
+
+from vlocnetpp_core.model import STREAMS, ModelConfig, VLocNetPP, load_model_config, params_per_stream
+
+
+def expected_taps(cfg: ModelConfig, batch: int, width: int, height: int) -> dict[str, tuple[int, ...]]:
+    c1, c2, c3 = cfg.stage_channels[1:]
+    s8, s16 = (height // 8, width // 8), (height // 16, width // 16)
+    s32 = (math.ceil(height / 32), math.ceil(width / 32))  # stride-2 stages round up
+    shapes = {
+        "res3": (c1, *s8), "res4c": (c2, *s16), "res4c_fused": (c2, *s16), "res4f": (c2, *s16),
+        "res5a": (c3, *s32), "res5a_fused": (c3, *s32), "res5c": (c3, *s32),
+        "odo_res4": (c2, *s16), "odo_res5": (c3, *s32),
+        "sem_res3": (c1, *s8), "sem_res4f": (c2, *s16), "sem_res4f_warped": (c2, *s16), "sem_res4f_fused": (c2, *s16),
+        "sem_res5c": (c3, *s16), "sem_res5c_warped": (c3, *s16), "sem_res5c_fused": (c3, *s16),
+    }
+    return {k: (batch, *v) for k, v in shapes.items()}
+
+
+def check_step_shapes(cfg: ModelConfig, width: int, height: int, batch: int = 2) -> None:
+    torch.manual_seed(0)
+    model = VLocNetPP(cfg).eval()
+    K = intrinsics(batch, width, height)
+    images = torch.rand(2, batch, 3, height, width)
+    with torch.inference_mode():
+        out, state = model.step(images[0], None, K)
+        out, state = model.step(images[1], state, K)  # second frame: real warping and temporal fusion
+    assert {k: tuple(v.shape) for k, v in out.taps.items()} == expected_taps(cfg, batch, width, height)
+    for xyz, quat in ((out.xyz, out.quat), (out.rel_xyz, out.rel_quat)):
+        assert xyz.shape == (batch, 3) and quat.shape == (batch, 4)
+        torch.testing.assert_close(quat.norm(dim=1), torch.ones(batch))
+        assert (quat[:, 0] >= 0).all()
+    assert out.seg_logits.shape == (batch, cfg.num_classes, height, width)
+    assert out.depth.shape == (batch, 1, height, width)
+    lo, hi = cfg.depth_range
+    assert (out.depth >= lo * 0.999).all() and (out.depth <= hi * 1.001).all()
+    assert state.res5a.shape == out.taps["res5a"].shape and state.odo_res4.shape == out.taps["odo_res4"].shape
+    assert state.sem_res4f.shape == out.taps["sem_res4f"].shape and state.sem_res5c.shape == out.taps["sem_res5c"].shape
+
+
+@pytest.mark.parametrize("size", [None, (208, 112), (160, 48)])
+def test_lite_shapes(size):
+    cfg = load_model_config("lite")
+    check_step_shapes(cfg, *(size or cfg.input_size))
+
+
+@pytest.mark.parametrize("size", [(96, 64), (80, 48)])
+def test_paper_shapes_at_small_sizes(size):
+    check_step_shapes(load_model_config("paper"), *size)
+
+
+def test_lite_is_a_few_million_parameters():
+    total = sum(params_per_stream(VLocNetPP(load_model_config("lite"))).values())
+    assert 1e6 < total < 5e6
+
+
+@pytest.mark.parametrize(
+    ("switch", "gone_modules", "gone_taps"),
+    [
+        ("temporal_fusion", ["global_stream.temporal_fusion"], ["res5a_fused"]),
+        ("semantic_fusion", ["semantic_fusion"], ["res4c_fused"]),
+        ("warping", ["semantic.warp_fusion_res4f", "semantic.warp_fusion_res5c", "depth_head"],
+         ["sem_res4f_warped", "sem_res4f_fused", "sem_res5c_warped", "sem_res5c_fused"]),
+    ],
+)
+def test_ablation_switch_removes_the_branch(switch, gone_modules, gone_taps):
+    full = VLocNetPP(lite())
+    cut = VLocNetPP(lite(**{switch: False}))
+    full_names = {n for n, _ in full.named_parameters()}
+    cut_names = {n for n, _ in cut.named_parameters()}
+    removed = full_names - cut_names
+    assert cut_names < full_names
+    assert removed == {n for n in full_names if any(n.startswith(m + ".") for m in gone_modules)}
+    W, H = 96, 64
+    K = intrinsics(1, W, H)
+    with torch.inference_mode():
+        out, state = cut.eval().step(torch.rand(1, 3, H, W), None, K)
+        out, state = cut.step(torch.rand(1, 3, H, W), state, K)
+    assert not set(gone_taps) & set(out.taps)
+    assert out.xyz is not None and out.rel_xyz is not None and out.seg_logits.shape == (1, 10, H, W)
+    if switch == "warping":
+        assert out.depth is None and state.sem_res4f is None
+    if switch == "temporal_fusion":
+        assert state.res5a is None
+
+
+def test_all_switches_off_still_runs_every_task():
+    model = VLocNetPP(lite(temporal_fusion=False, semantic_fusion=False, warping=False)).eval()
+    assert set(params_per_stream(model)) == set(STREAMS)
+    assert params_per_stream(model)["fusion"] == 0 and params_per_stream(model)["depth"] == 0
+    with torch.inference_mode():
+        out, _ = model.step(torch.rand(1, 3, 64, 96))  # no K needed without warping
+    assert out.xyz.shape == (1, 3) and out.seg_logits.shape == (1, 10, 64, 96)
+
+
+def test_bad_inputs_are_clear_errors():
+    model = VLocNetPP(lite()).eval()
+    with torch.inference_mode():
+        with pytest.raises(ValueError, match="multiples of 16"):
+            model.step(torch.rand(1, 3, 60, 96), None, intrinsics(1, 96, 60))
+        with pytest.raises(ValueError, match="RGB"):
+            model.step(torch.rand(1, 1, 64, 96), None, intrinsics(1, 96, 64))
+        with pytest.raises(ValueError, match="K .* required"):
+            model.step(torch.rand(1, 3, 64, 96))
+        with pytest.raises(ValueError, match="tasks"):
+            model.step(torch.rand(1, 3, 64, 96), None, intrinsics(1, 96, 64), tasks=("pose",))
+        _, state = model.step(torch.rand(1, 3, 64, 96), None, intrinsics(1, 96, 64))
+        with pytest.raises(ValueError, match="start again with state=None"):
+            model.step(torch.rand(1, 3, 96, 128), state, intrinsics(1, 128, 96))
+
+
+def test_config_input_size_is_only_a_default():
+    cfg = dataclasses.replace(load_model_config("lite"), input_size=(64, 32))
+    check_step_shapes(cfg, 128, 64, batch=1)

@@ -1,0 +1,142 @@
+"""Streaming state vs clip forward, the cached odometry Res4, gradients in MTL, and the stage helpers."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from model_fixtures import (
+    lite,
+    one_thread,  # noqa: F401  (autouse: one thread per test)
+    random_clip_batch,
+)
+
+from vlocnetpp_core.geometry import pose_to_matrix
+from vlocnetpp_core.losses import VLocNetLoss
+from vlocnetpp_core.model import (
+    STAGES,
+    STREAMS,
+    StreamState,
+    VLocNetPP,
+    is_trained_in,
+    params_per_stream,
+    stream_of,
+    trainable_parameters,
+)
+
+W, H = 96, 64
+
+
+@pytest.fixture(scope="module")
+def model():
+    torch.manual_seed(0)
+    return VLocNetPP(lite())
+
+
+def test_streaming_equals_clip_forward_in_eval_mode(model):
+    batch = random_clip_batch(2, 4, W, H, seed=1)
+    model.eval()
+    with torch.no_grad():
+        clip = model.forward_clip(batch["image"], batch["K"])
+        state = None
+        for t in range(4):
+            out, state = model.step(batch["image"][:, t], state, K=batch["K"][:, t])
+            for name in ("xyz", "quat", "rel_xyz", "rel_quat", "seg_logits", "depth"):
+                diff = (getattr(out, name) - getattr(clip[t], name)).abs().max()
+                assert diff < 1e-5, (t, name, float(diff))
+
+
+def test_state_carries_the_previous_frame(model):
+    """Frame t's outputs depend on frame t-1 through every fusion, and the cache equals recomputation."""
+    batch = random_clip_batch(1, 3, W, H, seed=2)
+    images, K = batch["image"], batch["K"][:, 0]
+    # An untrained odometry stream predicts arbitrary motion (everything out of view): warp with a small known one.
+    depth, small = torch.full((1, 1, H, W), 5.0), pose_to_matrix(torch.tensor([[0.1, 0.0, 0.2]]), torch.tensor([[1.0, 0.0, 0.02, 0.0]]))
+    model.eval()
+    with torch.no_grad():
+        _, state_a = model.step(images[:, 0], None, K)
+        _, state_b = model.step(images[:, 1], None, K)
+        out_a, _ = model.step(images[:, 2], state_a, K, depth=depth, warp_rel_pose=small)
+        out_b, _ = model.step(images[:, 2], state_b, K, depth=depth, warp_rel_pose=small)
+        assert out_a.taps["sem_res5c_warped"].abs().amax(dim=1).gt(0).float().mean() > 0.5
+        for name in ("xyz", "rel_xyz", "seg_logits"):
+            assert (getattr(out_a, name) - getattr(out_b, name)).abs().max() > 1e-6, name
+        # The cached odometry Res4 of frame t-1 is exactly what recomputing it from I_{t-1} gives.
+        recomputed = model.odometry.res4(model.trunk((images[:, 0] - model.mean) / model.std))
+        torch.testing.assert_close(state_a.odo_res4, recomputed, rtol=0, atol=0)
+        rel_xyz, rel_quat, _ = model.odometry(recomputed, out_a.taps["odo_res4"])
+        torch.testing.assert_close(out_a.rel_xyz, rel_xyz)
+        torch.testing.assert_close(out_a.rel_quat, rel_quat)
+
+
+def test_tasks_run_only_their_streams(model):
+    batch = random_clip_batch(1, 2, W, H, seed=3)
+    model.eval()
+    with torch.no_grad():
+        loc = model.forward_clip(batch["image"], batch["K"], tasks=("loc",))[-1]
+        assert loc.xyz is not None and loc.rel_xyz is None and loc.seg_logits is None
+        assert "odo_res4" not in loc.taps and "sem_res3" not in loc.taps and "res4c_fused" not in loc.taps
+        vo = model.forward_clip(batch["image"], batch["K"], tasks=("vo",))[-1]
+        assert vo.rel_xyz is not None and vo.xyz is None and "res4c" not in vo.taps
+        warp = pose_to_matrix(batch["rel_t"], batch["rel_q"])
+        seg = model.forward_clip(batch["image"], batch["K"], warp_rel_pose=warp, tasks=("seg",))[-1]
+        assert seg.seg_logits is not None and seg.depth is not None and "res3" not in seg.taps  # no odometry needed
+        seg_pred = model.forward_clip(batch["image"], batch["K"], tasks=("seg",))[-1]
+        assert "odo_res4" in seg_pred.taps  # warping uses the odometry's relative pose when none is given
+    assert StreamState().detach() == StreamState()
+
+
+def test_mtl_backward_reaches_every_parameter():
+    torch.manual_seed(0)
+    model = VLocNetPP(lite()).train()
+    criterion = VLocNetLoss("mtl")
+    batch = random_clip_batch(2, 3, W, H, seed=4)
+    outputs = model.forward_clip(batch["image"], batch["K"])
+    loss, parts = criterion(outputs, batch)
+    loss.backward()
+    assert set(parts) >= {"x", "q", "x_rel", "q_rel", "x_vo", "q_vo", "seg", "depth", "loc", "vo"}
+    dead = [n for n, p in model.named_parameters() if p.grad is None or p.grad.abs().sum() == 0]
+    assert dead == []
+    dead_weights = [n for n, p in criterion.named_parameters() if p.grad is None or p.grad == 0]
+    assert dead_weights == [] and len(list(criterion.parameters())) == 8
+
+
+def test_stage_helpers_partition_the_parameters(model):
+    names = [n for n, _ in model.named_parameters()]
+    assert {stream_of(n) for n in names} == set(STREAMS)
+    assert stream_of("trunk.res3.0.conv1.weight") == "global" and stream_of("module.depth_head.out.bias") == "depth"
+    assert stream_of("semantic_fusion.weight_a") == "fusion" and stream_of("semantic.warp_fusion_res4f.weight_b") == "semantic"
+    assert stream_of("global_stream.temporal_fusion.pool.weight") == "global"
+    with pytest.raises(KeyError):
+        stream_of("decoder.weight")
+    trained = {stage: {id(p) for p in trainable_parameters(model, stage)} for stage in STAGES}
+    by_name = dict(model.named_parameters())
+    assert trained["mtl"] == {id(p) for p in model.parameters()}
+    assert {stream_of(n) for n in names if id(by_name[n]) in trained["stl-loc"]} == {"global"}
+    assert {stream_of(n) for n in names if id(by_name[n]) in trained["stl-seg"]} == {"semantic", "depth"}
+    vo = {n for n in names if is_trained_in(n, "stl-vo")}
+    assert {n for n in vo if stream_of(n) == "global"} == {n for n in names if n.startswith("trunk.")}
+    assert not any(n.startswith("global_stream.") for n in vo)
+    assert sum(params_per_stream(model).values()) == sum(p.numel() for p in model.parameters())
+    with pytest.raises(ValueError, match="unknown stage"):
+        list(trainable_parameters(model, "stl-depth"))
+
+
+def test_single_task_stage_trains_only_its_streams():
+    """One optimiser step of stl-seg (as the trainer runs it) changes semantic and depth weights only."""
+    torch.manual_seed(0)
+    model = VLocNetPP(lite()).train()
+    before = {n: p.detach().clone() for n, p in model.named_parameters()}
+    criterion = VLocNetLoss("stl-seg")
+    for p in model.parameters():
+        p.requires_grad_(False)
+    params = list(trainable_parameters(model, "stl-seg"))
+    for p in params:
+        p.requires_grad_(True)
+    optimizer = torch.optim.Adam(params + list(criterion.parameters()), lr=1e-3)
+    batch = random_clip_batch(2, 2, W, H, seed=5)
+    warp = pose_to_matrix(batch["rel_t"], batch["rel_q"])
+    loss, _ = criterion(model.forward_clip(batch["image"], batch["K"], warp_rel_pose=warp, tasks=("seg",)), batch)
+    loss.backward()
+    optimizer.step()
+    changed = {stream_of(n) for n, p in model.named_parameters() if not torch.equal(p, before[n])}
+    assert changed == {"semantic", "depth"}

@@ -1,0 +1,162 @@
+"""VLocNet++ training losses (paper Eq. 1-3 and 6) with learned weights, on clip outputs.
+
+Per clip of ``T`` frames (``outputs[t]`` are :class:`~vlocnetpp_core.model.StepOutput`):
+
+* ``loc`` (Eq. 3): ``L_Euc + L_Rel``. ``L_Euc = L_x e^{-s_x} + s_x + L_q e^{-s_q} + s_q`` with
+  ``L_x = ||x_t - x^_t||``, ``L_q = ||q_t - q^_t||`` over every frame; ``L_Rel`` (geometric
+  consistency) compares the relative pose of the predicted global poses of frames t-1 and t,
+  ``T^_{t-1}^{-1} T^_t`` (SE(3) form, DESIGN section 3), with the ground-truth ``rel_t, rel_q``
+  over frames ``1..T-1``, with its own ``s_x_rel, s_q_rel``.
+* ``vo`` (Eq. 3 of the odometry): the odometry outputs against ``rel_t, rel_q`` over frames
+  ``1..T-1`` (frame 0 has no previous frame), weights ``s_x_vo, s_q_vo``.
+* ``seg``: cross-entropy over pixels whose label is not 255, averaged over labelled pixels.
+* ``depth``: L1 between log depths over pixels with ground-truth depth ``> 0`` (finite), on the
+  depth head that warping uses; it belongs to the ``seg`` task (``stl-seg`` trains the head).
+
+All ``s_x`` are initialised to 0 and all ``s_q`` to -3 (paper). With several tasks (``mtl``)
+the learned multitask weighting of Eq. 6 applies: ``L e^{-s} + s`` per task. For ``loc`` and
+``vo`` the task weight of Eq. 6 is folded into their component weights (``e^{-s_loc} e^{-s_x}``
+is one free weight): multiplying a loss that already holds learned weights by ``e^{-s_loc}``
+makes the objective unbounded below as soon as the task loss turns negative, which happens
+whenever an error drops below 1/e (``min_s a e^{-s} + s = 1 + log a``). ``seg`` and ``depth``
+get their Eq. 6 weights ``s_seg``, ``s_depth`` (init 0). A term without support in the batch
+(no labelled pixel, no valid depth, single-frame clips for the relative terms) is left out
+entirely, so its learned weight does not drift.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from vlocnetpp_core.classes import IGNORE_INDEX
+from vlocnetpp_core.geometry import relative_pose
+from vlocnetpp_core.model.stages import STAGE_TASKS
+from vlocnetpp_core.model.vlocnet import TASKS, StepOutput
+
+S_X_INIT = 0.0
+S_Q_INIT = -3.0
+
+
+def pose_errors(xyz: torch.Tensor, quat: torch.Tensor, t: torch.Tensor, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Mean ``||t - xyz||_2`` and ``||q - quat||_2`` over the batch: ``(..., 3)``, ``(..., 4)`` -> two scalars."""
+    return (t.to(xyz.dtype) - xyz).norm(dim=-1).mean(), (q.to(quat.dtype) - quat).norm(dim=-1).mean()
+
+
+def weighted(loss: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
+    """Learned homoscedastic weighting ``loss * exp(-s) + s``."""
+    return loss * torch.exp(-s) + s
+
+
+def segmentation_loss(logits: torch.Tensor, labels: torch.Tensor) -> tuple[torch.Tensor, int]:
+    """Summed cross-entropy of ``logits (B, C, H, W)`` vs ``labels (B, H, W)`` (255 ignored), and the labelled pixel count."""
+    labels = labels.long()
+    if labels.shape[-2:] != logits.shape[-2:]:
+        raise ValueError(f"labels {tuple(labels.shape)} do not match the logits {tuple(logits.shape)}")
+    return F.cross_entropy(logits, labels, ignore_index=IGNORE_INDEX, reduction="sum"), int((labels != IGNORE_INDEX).sum())
+
+
+def depth_loss(pred: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, int]:
+    """Summed ``|log pred - log target|`` over valid pixels (target ``> 0`` and finite), and their count; ``(B, 1, H, W)``."""
+    if pred.shape != target.shape:
+        raise ValueError(f"depth target {tuple(target.shape)} does not match the prediction {tuple(pred.shape)}")
+    target = target.to(pred.dtype)
+    valid = torch.isfinite(target) & (target > 0)
+    safe = torch.where(valid, target, torch.ones_like(target))
+    err = (torch.log(pred) - torch.log(safe)).abs()
+    return torch.where(valid, err, torch.zeros_like(err)).sum(), int(valid.sum())
+
+
+class VLocNetLoss(nn.Module):
+    """The losses of the tasks (or the stage) given, from a clip's outputs and the batch dict.
+
+    Args:
+        tasks: a stage name (``"stl-loc"``, ``"stl-vo"``, ``"stl-seg"``, ``"mtl"``) or task names
+            (``"loc"``, ``"vo"``, ``"seg"``).
+        learned_weighting: learned Eq. 6 weights for ``seg`` and ``depth``; default: when more
+            than one task is trained (``mtl``). Single-task ``seg`` sums ``L_seg + L_depth``.
+        depth: whether the model has a depth head to supervise (config ``warping``).
+
+    ``forward(outputs, batch)`` takes the ``T`` step outputs of a clip and the batch dict of
+    ``ClipDataset`` (``t, q, rel_t, rel_q (B, T, 3|4)``, ``labels (B, T, H, W)``,
+    ``depth (B, T, 1, H, W)``) and returns ``(total, parts)``; ``parts`` holds the raw errors
+    (``x``, ``q``, ``x_rel``, ``q_rel``, ``x_vo``, ``q_vo``, ``seg``, ``depth``) and the task
+    losses (``loc``, ``vo``), detached.
+    """
+
+    def __init__(self, tasks: str | Iterable[str] = TASKS, learned_weighting: bool | None = None, depth: bool = True):
+        super().__init__()
+        if isinstance(tasks, str):
+            if tasks not in STAGE_TASKS:
+                raise ValueError(f"unknown stage {tasks!r}; expected one of {tuple(STAGE_TASKS)} or task names {TASKS}")
+            tasks = STAGE_TASKS[tasks]
+        self.tasks = tuple(t for t in TASKS if t in set(tasks))
+        if not self.tasks or set(tasks) - set(TASKS):
+            raise ValueError(f"tasks must be a non-empty subset of {TASKS}, got {tasks}")
+        self.learned_weighting = len(self.tasks) > 1 if learned_weighting is None else learned_weighting
+        self.depth = depth and "seg" in self.tasks
+
+        def s(value: float) -> nn.Parameter:
+            return nn.Parameter(torch.tensor(value))
+
+        if "loc" in self.tasks:
+            self.s_x, self.s_q = s(S_X_INIT), s(S_Q_INIT)
+            self.s_x_rel, self.s_q_rel = s(S_X_INIT), s(S_Q_INIT)
+        if "vo" in self.tasks:
+            self.s_x_vo, self.s_q_vo = s(S_X_INIT), s(S_Q_INIT)
+        if "seg" in self.tasks and self.learned_weighting:
+            self.s_seg = s(0.0)
+            if self.depth:
+                self.s_depth = s(0.0)
+
+    def forward(self, outputs: Sequence[StepOutput], batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        terms: list[torch.Tensor] = []
+        parts: dict[str, torch.Tensor] = {}
+        T = len(outputs)
+        if "loc" in self.tasks:
+            xyz = torch.stack([_need(o.xyz, "xyz") for o in outputs], 1)
+            quat = torch.stack([_need(o.quat, "quat") for o in outputs], 1)
+            parts["x"], parts["q"] = pose_errors(xyz, quat, batch["t"][:, :T], batch["q"][:, :T])
+            loc = weighted(parts["x"], self.s_x) + weighted(parts["q"], self.s_q)
+            if T > 1:
+                rel_xyz, rel_quat = relative_pose(xyz[:, :-1], quat[:, :-1], xyz[:, 1:], quat[:, 1:])
+                parts["x_rel"], parts["q_rel"] = pose_errors(rel_xyz, rel_quat, batch["rel_t"][:, 1:T], batch["rel_q"][:, 1:T])
+                loc = loc + weighted(parts["x_rel"], self.s_x_rel) + weighted(parts["q_rel"], self.s_q_rel)
+            parts["loc"] = loc
+            terms.append(loc)
+        if "vo" in self.tasks and T > 1:
+            rel_xyz = torch.stack([_need(o.rel_xyz, "rel_xyz") for o in outputs[1:]], 1)
+            rel_quat = torch.stack([_need(o.rel_quat, "rel_quat") for o in outputs[1:]], 1)
+            parts["x_vo"], parts["q_vo"] = pose_errors(rel_xyz, rel_quat, batch["rel_t"][:, 1:T], batch["rel_q"][:, 1:T])
+            parts["vo"] = weighted(parts["x_vo"], self.s_x_vo) + weighted(parts["q_vo"], self.s_q_vo)
+            terms.append(parts["vo"])
+        if "seg" in self.tasks:
+            total, count = _sum_over_frames(segmentation_loss, [_need(o.seg_logits, "seg_logits") for o in outputs], batch["labels"])
+            if count:
+                parts["seg"] = total / count
+                terms.append(weighted(parts["seg"], self.s_seg) if self.learned_weighting else parts["seg"])
+            if self.depth:
+                total, count = _sum_over_frames(depth_loss, [_need(o.depth, "depth") for o in outputs], batch["depth"])
+                if count:
+                    parts["depth"] = total / count
+                    terms.append(weighted(parts["depth"], self.s_depth) if self.learned_weighting else parts["depth"])
+        if not terms:
+            raise ValueError("no loss term has support in this batch (no labels, no depth and single-frame clips?)")
+        return torch.stack(terms).sum(), {k: v.detach() for k, v in parts.items()}
+
+
+def _sum_over_frames(fn, predictions: list[torch.Tensor], targets: torch.Tensor) -> tuple[torch.Tensor, int]:
+    total, count = predictions[0].new_zeros(()), 0
+    for t, pred in enumerate(predictions):
+        value, n = fn(pred, targets[:, t])
+        total, count = total + value, count + n
+    return total, count
+
+
+def _need(value: torch.Tensor | None, name: str) -> torch.Tensor:
+    if value is None:
+        raise ValueError(f"the model output has no {name}: was the stream run (step tasks=...) and is its branch in the config?")
+    return value

@@ -1,0 +1,103 @@
+"""Output heads: 6-DoF pose regression, AdapNet segmentation decoder, depth for warping."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from vlocnetpp_core.geometry import quat_normalize
+from vlocnetpp_core.model.backbone import PostNorm
+
+
+class PoseHead(nn.Module):
+    """``BN -> ELU -> GAP -> fc1 (ELU, dropout) -> fc2 xyz (3), fc3 quaternion (4)``.
+
+    ``(B, C, h, w) -> (xyz (B, 3), quat (B, 4))``; the quaternion is normalised to a unit
+    ``(w, x, y, z)`` with ``w >= 0``. fc3 starts at the identity rotation.
+    """
+
+    def __init__(self, in_channels: int, fc_width: int, dropout: float):
+        super().__init__()
+        self.norm = PostNorm(in_channels)
+        self.fc1 = nn.Linear(in_channels, fc_width)
+        self.dropout = nn.Dropout(dropout)
+        self.fc_xyz = nn.Linear(fc_width, 3)
+        self.fc_quat = nn.Linear(fc_width, 4)
+        self.custom_init()
+
+    def custom_init(self) -> None:
+        for fc in (self.fc1, self.fc_xyz, self.fc_quat):
+            nn.init.normal_(fc.weight, std=0.01)
+            nn.init.zeros_(fc.bias)
+        with torch.no_grad():
+            self.fc_quat.bias[0] = 1.0
+
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        h = self.norm(x).mean(dim=(2, 3))
+        h = self.dropout(F.elu(self.fc1(h)))
+        return self.fc_xyz(h), quat_normalize(self.fc_quat(h))
+
+
+def bilinear_kernel(channels: int, kernel_size: int) -> torch.Tensor:
+    """``(channels, channels, k, k)`` transposed-convolution weight that upsamples each channel bilinearly."""
+    factor = (kernel_size + 1) // 2
+    center = factor - 1 if kernel_size % 2 == 1 else factor - 0.5
+    r = torch.arange(kernel_size, dtype=torch.float32)
+    k1 = 1 - (r - center).abs() / factor
+    weight = torch.zeros(channels, channels, kernel_size, kernel_size)
+    weight[range(channels), range(channels)] = k1[:, None] * k1[None, :]
+    return weight
+
+
+class SegmentationDecoder(nn.Module):
+    """AdapNet decoder: class scores at stride 16, deconv x2, add a skip from Res3, deconv x8.
+
+    ``deep (B, C_deep, H/16, W/16)`` (encoder end), ``skip (B, C_skip, H/8, W/8)`` ->
+    logits ``(B, num_classes, H, W)``. Both deconvolutions start as bilinear upsampling.
+    """
+
+    def __init__(self, deep_channels: int, skip_channels: int, num_classes: int):
+        super().__init__()
+        self.deep_norm = PostNorm(deep_channels)
+        self.score = nn.Conv2d(deep_channels, num_classes, 1)
+        self.up2 = nn.ConvTranspose2d(num_classes, num_classes, 4, stride=2, padding=1, bias=False)
+        self.skip_norm = PostNorm(skip_channels)
+        self.skip = nn.Conv2d(skip_channels, num_classes, 1)
+        self.up8 = nn.ConvTranspose2d(num_classes, num_classes, 16, stride=8, padding=4, bias=False)
+        self.custom_init()
+
+    def custom_init(self) -> None:
+        with torch.no_grad():
+            self.up2.weight.copy_(bilinear_kernel(self.up2.in_channels, 4))
+            self.up8.weight.copy_(bilinear_kernel(self.up8.in_channels, 16))
+
+    def forward(self, deep: torch.Tensor, skip: torch.Tensor) -> torch.Tensor:
+        y = self.up2(self.score(self.deep_norm(deep)))
+        y = y + self.skip(self.skip_norm(skip))
+        return self.up8(y)
+
+
+class DepthHead(nn.Module):
+    """Light depth head on the semantic encoder's Res3: ``(B, C, H/8, W/8) -> depth (B, 1, H, W)`` metres.
+
+    ``BN -> ELU -> conv 3x3 -> ELU -> conv 1x1`` gives a score at stride 8, upsampled
+    bilinearly to the input size; depth is ``exp`` of a log-depth squashed into
+    ``[log(min), log(max)]`` with a sigmoid, so it is always positive and bounded (the score 0
+    is the geometric mean of the range).
+    """
+
+    def __init__(self, in_channels: int, width: int, depth_range: tuple[float, float]):
+        super().__init__()
+        self.norm = PostNorm(in_channels)
+        self.conv = nn.Conv2d(in_channels, width, 3, padding=1)
+        self.out = nn.Conv2d(width, 1, 1)
+        self.log_min = math.log(depth_range[0])
+        self.log_max = math.log(depth_range[1])
+
+    def forward(self, x: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+        score = self.out(F.elu(self.conv(self.norm(x))))
+        score = F.interpolate(score, size=size, mode="bilinear", align_corners=False)
+        return torch.exp(self.log_min + (self.log_max - self.log_min) * torch.sigmoid(score))

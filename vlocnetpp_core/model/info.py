@@ -1,0 +1,47 @@
+"""``vlocnetpp model-info``: parameter counts per stream and per training stage of a model config."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from typing import Any
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--config", default="lite", help="model config: 'paper', 'lite' or a YAML file (default: lite)")
+    parser.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
+
+
+def model_info(config_name: str) -> dict[str, Any]:
+    """Summary of the network a config builds: input size, switches, parameter counts."""
+    from vlocnetpp_core.model import STAGES, VLocNetPP, load_model_config, params_per_stream, trainable_parameters
+
+    config = load_model_config(config_name)
+    model = VLocNetPP(config)
+    per_stream = params_per_stream(model)
+    return {
+        "config": config.name,
+        "input_size": list(config.input_size),
+        "params_total": sum(per_stream.values()),
+        "params_per_stream": per_stream,
+        "params_trained_per_stage": {stage: sum(p.numel() for p in trainable_parameters(model, stage)) for stage in STAGES},
+        "switches": {k: getattr(config, k) for k in ("temporal_fusion", "semantic_fusion", "warping")},
+        "num_classes": config.num_classes,
+    }
+
+
+def format_table(info: dict[str, Any]) -> str:
+    w, h = info["input_size"]
+    lines = [f"model config {info['config']!r}: input {w}x{h} (width x height), {info['num_classes']} classes",
+             "switches: " + ", ".join(f"{k}={'on' if v else 'off'}" for k, v in info["switches"].items()), "",
+             f"{'stream':<12}{'parameters':>14}"]
+    lines += [f"{name:<12}{n:>14,}" for name, n in info["params_per_stream"].items()]
+    lines += [f"{'total':<12}{info['params_total']:>14,}", "", f"{'stage':<12}{'trained':>14}"]
+    lines += [f"{name:<12}{n:>14,}" for name, n in info["params_trained_per_stage"].items()]
+    return "\n".join(lines)
+
+
+def run(args: argparse.Namespace) -> int:
+    info = model_info(args.config)
+    print(json.dumps(info, indent=2) if args.json else format_table(info))
+    return 0

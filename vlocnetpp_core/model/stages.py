@@ -1,0 +1,72 @@
+"""Which stream each weight belongs to, and which weights each training stage trains.
+
+Streams: ``global`` (the shared trunk stem..Res3 and the global Res4, Res5, temporal Res5a AWF
+and pose head), ``odometry`` (Siamese Res4, Res5, pose head), ``semantic`` (AdapNet encoder,
+the Res4f / Res5c warp AWFs, decoder), ``depth`` (the depth head for warping) and ``fusion``
+(the inter-task AWF that fuses semantic features into the global stream at Res4c).
+
+Stages (paper Sec. IV): ``stl-loc`` trains ``global``; ``stl-vo`` trains ``odometry`` and the
+shared trunk (its I_t stream up to Res3 *is* the trunk); ``stl-seg`` trains ``semantic`` and
+``depth``; ``mtl`` trains everything.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+from torch import nn
+
+STREAMS = ("global", "odometry", "semantic", "depth", "fusion")
+STAGES = ("stl-loc", "stl-vo", "stl-seg", "mtl")
+# Tasks (``VLocNetPP.step(tasks=...)`` and ``VLocNetLoss``) a stage runs.
+STAGE_TASKS: dict[str, tuple[str, ...]] = {"stl-loc": ("loc",), "stl-vo": ("vo",), "stl-seg": ("seg",), "mtl": ("loc", "vo", "seg")}
+
+_PREFIX_STREAM = {
+    "trunk": "global",
+    "global_stream": "global",
+    "odometry": "odometry",
+    "semantic": "semantic",
+    "depth_head": "depth",
+    "semantic_fusion": "fusion",
+}
+_STAGE_STREAMS = {
+    "stl-loc": {"global"},
+    "stl-vo": {"odometry"},
+    "stl-seg": {"semantic", "depth"},
+    "mtl": set(STREAMS),
+}
+
+
+def stream_of(name: str) -> str:
+    """Stream of a parameter or buffer name of :class:`VLocNetPP` (``"trunk.res3.0.conv1.weight"`` -> ``"global"``)."""
+    prefix = name.removeprefix("module.").split(".", 1)[0]
+    if prefix not in _PREFIX_STREAM:
+        raise KeyError(f"{name!r} is not a VLocNetPP parameter name")
+    return _PREFIX_STREAM[prefix]
+
+
+def _check_stage(stage: str) -> None:
+    if stage not in STAGES:
+        raise ValueError(f"unknown stage {stage!r}; expected one of {STAGES}")
+
+
+def is_trained_in(name: str, stage: str) -> bool:
+    """Whether ``stage`` trains the parameter ``name``."""
+    _check_stage(stage)
+    if stage == "stl-vo" and name.removeprefix("module.").startswith("trunk."):
+        return True
+    return stream_of(name) in _STAGE_STREAMS[stage]
+
+
+def trainable_parameters(model: nn.Module, stage: str) -> Iterator[nn.Parameter]:
+    """The parameters of ``model`` that ``stage`` trains (see the module docstring)."""
+    _check_stage(stage)
+    return (p for name, p in model.named_parameters() if is_trained_in(name, stage))
+
+
+def params_per_stream(model: nn.Module) -> dict[str, int]:
+    """Number of parameters (elements) per stream, every stream listed."""
+    counts = dict.fromkeys(STREAMS, 0)
+    for name, p in model.named_parameters():
+        counts[stream_of(name)] += p.numel()
+    return counts

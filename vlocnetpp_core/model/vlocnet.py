@@ -1,0 +1,342 @@
+"""The assembled VLocNet++ network: global pose, Siamese odometry and AdapNet semantic streams.
+
+Data flow of one streaming :meth:`VLocNetPP.step` for frame ``t`` (``C_i`` = output channels of
+Res_i, spatial strides in brackets; ``prev`` is the :class:`StreamState` of frame ``t-1``)::
+
+    image -> trunk (stem, Res2, Res3) [8] ---------------------------- shared by global and odometry I_t
+      odometry: Res4(res3) [16] = odo_res4_t;  Res5(odo_res4_{t-1} ++ odo_res4_t) [32] -> rel xyz, quat
+      semantic: stem..Res3 [8] -> depth head -> D_t
+                Res4 [16] = sem_res4f -> AWF(., warp(prev.sem_res4f)) -> Res5 (dilated) [16] = sem_res5c
+                -> AWF(., warp(prev.sem_res5c)) -> decoder (+ skip from Res3) -> logits [1]
+      global:   Res4[:k] [16] = res4c -> AWF(., fused sem_res5c) -> Res4[k:] = res4f
+                -> Res5a [32] = res5a -> AWF(., prev.res5a) -> Res5b.. = res5c -> xyz, quat
+
+The warp (paper Eq. 4, :func:`geometry.warp_grid`) uses ``D_t`` and the predicted relative pose
+(or the ``depth`` / ``warp_rel_pose`` given to ``step``); the grid is computed once at input
+resolution and average-pooled to the OS16 feature size. Module names set the stream a weight
+belongs to (see ``stages.py``): ``trunk`` and ``global_stream`` are the global stream (the
+trunk is also the odometry I_t stream up to Res3), ``odometry``, ``semantic`` (encoder, warp
+fusions, decoder), ``depth_head`` and ``semantic_fusion`` (the inter-task Res4c AWF).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass, field, fields
+
+import torch
+from torch import nn
+
+from vlocnetpp_core.geometry import pool_warp_grid, pose_to_matrix, warp_features, warp_grid
+from vlocnetpp_core.model.backbone import Stem, init_weights, make_stage
+from vlocnetpp_core.model.config import ModelConfig
+from vlocnetpp_core.model.fusion import AdaptiveWeightedFusion
+from vlocnetpp_core.model.heads import DepthHead, PoseHead, SegmentationDecoder
+
+TASKS = ("loc", "vo", "seg")
+
+
+@dataclass
+class StepOutput:
+    """Outputs for one frame. Heads of tasks that were not run are ``None``.
+
+    ``xyz (B, 3)`` metres and ``quat (B, 4)`` unit ``(w, x, y, z)``, ``w >= 0``: global pose
+    ``T_wc``; ``rel_xyz``, ``rel_quat``: ``T_rel = T_{t-1}^{-1} T_t``; ``seg_logits (B, C, H, W)``;
+    ``depth (B, 1, H, W)`` predicted metres; ``taps``: named intermediate features.
+    """
+
+    xyz: torch.Tensor | None = None
+    quat: torch.Tensor | None = None
+    rel_xyz: torch.Tensor | None = None
+    rel_quat: torch.Tensor | None = None
+    seg_logits: torch.Tensor | None = None
+    depth: torch.Tensor | None = None
+    taps: dict[str, torch.Tensor] = field(default_factory=dict)
+
+
+@dataclass
+class StreamState:
+    """Previous-frame features the next step fuses (all before fusion; ``None``: not available).
+
+    ``res5a`` global Res5a ``(B, C5, H/32, W/32)``; ``odo_res4`` odometry Res4 ``(B, C4, H/16, W/16)``;
+    ``sem_res4f`` / ``sem_res5c`` semantic encoder ``(B, C4 | C5, H/16, W/16)``.
+    """
+
+    res5a: torch.Tensor | None = None
+    odo_res4: torch.Tensor | None = None
+    sem_res4f: torch.Tensor | None = None
+    sem_res5c: torch.Tensor | None = None
+
+    def detach(self) -> StreamState:
+        """A copy cut from the autograd graph (for truncated back-propagation through time)."""
+        return StreamState(**{f.name: None if getattr(self, f.name) is None else getattr(self, f.name).detach() for f in fields(self)})
+
+
+class Trunk(nn.Module):
+    """Stem, Res2, Res3 shared by the global stream and the odometry I_t stream: ``(B, 3, H, W) -> (B, C3, H/8, W/8)``."""
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        c = cfg.stage_channels
+        self.stem = Stem(cfg.stem_width)
+        self.res2 = make_stage(cfg.stem_width, cfg.widths[0], c[0], cfg.depths[0], stride=1)
+        self.res3 = make_stage(c[0], cfg.widths[1], c[1], cfg.depths[1], stride=2)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.res3(self.res2(self.stem(x)))
+
+
+class GlobalPoseStream(nn.Module):
+    """Res4, Res5 and the pose head of the global stream, with the temporal Res5a AWF."""
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        c = cfg.stage_channels
+        self.res4 = make_stage(c[1], cfg.widths[2], c[2], cfg.depths[2], stride=2)
+        self.res5 = make_stage(c[2], cfg.widths[3], c[3], cfg.depths[3], stride=2)
+        self.temporal_fusion = AdaptiveWeightedFusion(c[3], c[3]) if cfg.temporal_fusion else None
+        self.head = PoseHead(c[3], cfg.fc_width, cfg.dropout)
+
+
+class OdometryStream(nn.Module):
+    """Siamese Res4 (one set of weights for both frames), Res5 on the concatenation, pose head."""
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        c = cfg.stage_channels
+        self.res4 = make_stage(c[1], cfg.widths[2], c[2], cfg.depths[2], stride=2)
+        self.res5 = make_stage(2 * c[2], cfg.widths[3], c[3], cfg.depths[3], stride=2)
+        self.head = PoseHead(c[3], cfg.fc_width, cfg.dropout)
+
+    def forward(self, prev_res4: torch.Tensor, res4: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``(B, C4, h, w)`` twice -> ``rel_xyz (B, 3)``, ``rel_quat (B, 4)``, Res5 output."""
+        res5 = self.res5(torch.cat((prev_res4, res4), 1))
+        xyz, quat = self.head(res5)
+        return xyz, quat, res5
+
+
+class SemanticStream(nn.Module):
+    """AdapNet: ResNet encoder with multiscale blocks at output stride 16, warp AWFs, decoder."""
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        c = cfg.stage_channels
+        d4 = cfg.semantic_res4_dilation
+        self.stem = Stem(cfg.stem_width)
+        self.res2 = make_stage(cfg.stem_width, cfg.widths[0], c[0], cfg.depths[0], stride=1)
+        self.res3 = make_stage(c[0], cfg.widths[1], c[1], cfg.depths[1], stride=2)
+        self.res4 = make_stage(c[1], cfg.widths[2], c[2], cfg.depths[2], stride=2, multiscale=(None,) + (d4,) * (cfg.depths[2] - 1))
+        self.res5 = make_stage(c[2], cfg.widths[3], c[3], cfg.depths[3], stride=1, dilation=2, multiscale=cfg.res5_dilations())
+        self.warp_fusion_res4f = AdaptiveWeightedFusion(c[2], c[2]) if cfg.warping else None
+        self.warp_fusion_res5c = AdaptiveWeightedFusion(c[3], c[3]) if cfg.warping else None
+        self.decoder = SegmentationDecoder(c[3], c[1], cfg.num_classes)
+
+
+class VLocNetPP(nn.Module):
+    """VLocNet++ (paper Sec. III). Images are ``(B, 3, H, W)`` RGB in ``[0, 1]``; H, W multiples of 16.
+
+    ``tasks`` (any of ``"loc"``, ``"vo"``, ``"seg"``; default all) picks the streams a call runs,
+    so a single-task stage computes only its stream. The inter-task Res4c fusion runs only when
+    both ``loc`` and ``seg`` run; the odometry stream also runs for ``seg`` when warping needs
+    its relative pose (no ``warp_rel_pose`` given). Ablation switches of the config remove their
+    branch entirely (no parameters, no compute); without ``warping`` there is no depth head.
+    """
+
+    def __init__(self, config: ModelConfig):
+        super().__init__()
+        self.config = config
+        c = config.stage_channels
+        self.trunk = Trunk(config)
+        self.global_stream = GlobalPoseStream(config)
+        self.odometry = OdometryStream(config)
+        self.semantic = SemanticStream(config)
+        self.depth_head = DepthHead(c[1], config.depth_width, config.depth_range) if config.warping else None
+        self.semantic_fusion = AdaptiveWeightedFusion(c[2], c[3]) if config.semantic_fusion else None
+        self.register_buffer("mean", torch.tensor(config.mean).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer("std", torch.tensor(config.std).view(1, 3, 1, 1), persistent=False)
+        init_weights(self)
+
+    # ------------------------------------------------------------------ streaming
+
+    def step(
+        self,
+        image: torch.Tensor,
+        state: StreamState | None = None,
+        K: torch.Tensor | None = None,
+        depth: torch.Tensor | None = None,
+        warp_rel_pose: torch.Tensor | None = None,
+        tasks: Iterable[str] | None = None,
+    ) -> tuple[StepOutput, StreamState]:
+        """One frame. ``state=None`` is a first frame: every fusion with the previous frame uses
+        the current frame's own features (a static camera); odometry outputs are then meaningless.
+
+        Args:
+            image: ``(B, 3, H, W)`` RGB in ``[0, 1]``.
+            state: the state returned by the previous step (``None`` for a first frame).
+            K: ``(B, 3, 3)`` intrinsics at ``H x W``; required when the semantic stream warps.
+            depth: ``(B, 1, H, W)`` metres (0 = invalid) used for warping instead of the prediction.
+            warp_rel_pose: ``(B, 4, 4)`` ``T_{t-1}^{-1} T_t`` used for warping instead of the odometry output.
+            tasks: streams to run (default ``("loc", "vo", "seg")``).
+
+        Returns:
+            ``(StepOutput, StreamState)``; the state keeps the autograd graph (call
+            :meth:`StreamState.detach` to cut it).
+        """
+        run = _check_tasks(tasks)
+        self._check_image(image)
+        cfg = self.config
+        height, width = image.shape[-2:]
+        prev = state if state is not None else StreamState()
+        x = (image - self.mean) / self.std
+        out = StepOutput()
+        new = StreamState()
+        taps = out.taps
+
+        do_seg = "seg" in run
+        do_warp = cfg.warping and do_seg
+        do_loc = "loc" in run
+        do_odo = "vo" in run or (do_warp and warp_rel_pose is None)
+        if do_warp and K is None:
+            raise ValueError("K (B, 3, 3), the intrinsics at the network input size, is required for warping")
+
+        if do_loc or do_odo:
+            res3 = self.trunk(x)
+            taps["res3"] = res3
+
+        if do_odo:
+            odo_res4 = self.odometry.res4(res3)
+            prev_odo = prev.odo_res4 if prev.odo_res4 is not None else odo_res4
+            _check_state(prev_odo, odo_res4, "odo_res4")
+            out.rel_xyz, out.rel_quat, taps["odo_res5"] = self.odometry(prev_odo, odo_res4)
+            taps["odo_res4"] = new.odo_res4 = odo_res4
+
+        if do_seg:
+            sem = self.semantic
+            sem_res3 = sem.res3(sem.res2(sem.stem(x)))
+            taps["sem_res3"] = sem_res3
+            if self.depth_head is not None:
+                out.depth = self.depth_head(sem_res3, (height, width))
+            sem_res4f = sem.res4(sem_res3)
+            taps["sem_res4f"] = sem_res4f
+            new.sem_res4f = sem_res4f if do_warp else None
+            warper = None
+            if do_warp and prev.sem_res4f is not None:
+                rel = warp_rel_pose if warp_rel_pose is not None else pose_to_matrix(out.rel_xyz, out.rel_quat)
+                warper = _Warper(depth.to(image.dtype) if depth is not None else out.depth, rel, K)
+            fused4f = self._warp_fuse(sem.warp_fusion_res4f, sem_res4f, prev.sem_res4f, warper, "sem_res4f", taps) if do_warp else sem_res4f
+            sem_res5c = sem.res5(fused4f)
+            taps["sem_res5c"] = sem_res5c
+            new.sem_res5c = sem_res5c if do_warp else None
+            fused5c = self._warp_fuse(sem.warp_fusion_res5c, sem_res5c, prev.sem_res5c, warper, "sem_res5c", taps) if do_warp else sem_res5c
+            out.seg_logits = sem.decoder(fused5c, sem_res3)
+
+        if do_loc:
+            g = self.global_stream
+            h = res3
+            for block in g.res4[: cfg.res4_fusion_block]:
+                h = block(h)
+            taps["res4c"] = h
+            if self.semantic_fusion is not None and do_seg:
+                h = taps["res4c_fused"] = self.semantic_fusion(h, fused5c)
+            for block in g.res4[cfg.res4_fusion_block :]:
+                h = block(h)
+            taps["res4f"] = h
+            res5a = g.res5[0](h)
+            taps["res5a"] = res5a
+            h = res5a
+            if g.temporal_fusion is not None:
+                prev5a = prev.res5a if prev.res5a is not None else res5a
+                _check_state(prev5a, res5a, "res5a")
+                h = taps["res5a_fused"] = g.temporal_fusion(res5a, prev5a)
+                new.res5a = res5a
+            for block in g.res5[1:]:
+                h = block(h)
+            taps["res5c"] = h
+            out.xyz, out.quat = g.head(h)
+        return out, new
+
+    def _warp_fuse(self, fusion: nn.Module, current: torch.Tensor, previous: torch.Tensor | None, warper: _Warper | None,
+                   name: str, taps: dict[str, torch.Tensor]) -> torch.Tensor:
+        """AWF of ``current`` with the previous frame's features warped into this view (own features on a first frame)."""
+        if previous is None:
+            warped = current
+        else:
+            _check_state(previous, current, name)
+            warped = warper(previous)
+        taps[f"{name}_warped"] = warped
+        fused = fusion(current, warped)
+        taps[f"{name}_fused"] = fused
+        return fused
+
+    # ------------------------------------------------------------------ clips
+
+    def forward_clip(
+        self,
+        images: torch.Tensor,
+        K: torch.Tensor | None = None,
+        depth: torch.Tensor | None = None,
+        warp_rel_pose: torch.Tensor | None = None,
+        tasks: Iterable[str] | None = None,
+    ) -> list[StepOutput]:
+        """Unroll :meth:`step` over a clip, the state coming from the network's own previous step.
+
+        ``images (B, T, 3, H, W)``, ``K (B, T, 3, 3)`` (or ``(B, 3, 3)`` for all frames),
+        ``depth (B, T, 1, H, W)``, ``warp_rel_pose (B, T, 4, 4)`` -> ``T`` :class:`StepOutput`.
+        The graph runs through the state, so gradients flow across frames.
+        """
+        if images.dim() != 5:
+            raise ValueError(f"images must be (B, T, 3, H, W), got {tuple(images.shape)}")
+        T = images.shape[1]
+        state = None
+        outputs = []
+        for t in range(T):
+            out, state = self.step(
+                images[:, t],
+                state,
+                K=None if K is None else (K if K.dim() == 3 else K[:, t]),
+                depth=None if depth is None else depth[:, t],
+                warp_rel_pose=None if warp_rel_pose is None else warp_rel_pose[:, t],
+                tasks=tasks,
+            )
+            outputs.append(out)
+        return outputs
+
+    def forward(self, images: torch.Tensor, K: torch.Tensor | None = None, depth: torch.Tensor | None = None,
+                warp_rel_pose: torch.Tensor | None = None, tasks: Iterable[str] | None = None) -> list[StepOutput]:
+        """Same as :meth:`forward_clip` (so wrappers such as DistributedDataParallel work)."""
+        return self.forward_clip(images, K, depth, warp_rel_pose, tasks)
+
+    def _check_image(self, image: torch.Tensor) -> None:
+        if image.dim() != 4 or image.shape[1] != 3:
+            raise ValueError(f"image must be (B, 3, H, W) RGB, got {tuple(image.shape)}")
+        h, w = image.shape[-2:]
+        if h % 16 or w % 16:
+            raise ValueError(f"image height and width must be multiples of 16 (semantic stream at output stride 16), got {w}x{h}")
+
+
+class _Warper:
+    """Warps previous-frame features into the current view; one input-resolution grid, pooled per feature size."""
+
+    def __init__(self, depth: torch.Tensor, T_rel: torch.Tensor, K: torch.Tensor):
+        self.grid, self.valid = warp_grid(depth, T_rel.to(depth.dtype), K.to(depth.dtype))
+        self.pooled: dict[tuple[int, int], tuple[torch.Tensor, torch.Tensor]] = {}
+
+    def __call__(self, features: torch.Tensor) -> torch.Tensor:
+        size = tuple(features.shape[-2:])
+        if size not in self.pooled:
+            self.pooled[size] = pool_warp_grid(self.grid, self.valid, size)
+        return warp_features(features, *self.pooled[size])
+
+
+def _check_tasks(tasks: Iterable[str] | None) -> frozenset[str]:
+    run = frozenset(TASKS if tasks is None else tasks)
+    unknown = run - set(TASKS)
+    if unknown or not run:
+        raise ValueError(f"tasks must be a non-empty subset of {TASKS}, got {sorted(run)}")
+    return run
+
+
+def _check_state(previous: torch.Tensor, current: torch.Tensor, name: str) -> None:
+    if previous.shape != current.shape:
+        raise ValueError(f"state {name} has shape {tuple(previous.shape)} but this frame gives {tuple(current.shape)}: "
+                         "the input size or batch changed, start again with state=None")
