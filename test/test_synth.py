@@ -195,3 +195,12 @@ def test_pitch_and_roll_are_rendered_as_pure_rotations(frames):
     b = render_frame(campus, visit.t[2], q_tilted, K, visit.lighting)
     err, still, agree, _ = _warp_errors(K, a, b, visit.t[2], q_level, visit.t[2], q_tilted)
     assert err < 0.2 * still and agree > 0.95, (err, still, agree)
+
+
+def test_render_frame_refuses_poses_it_cannot_render(frames):
+    campus, K, visit, _ = frames
+    steep = geometry.quat_normalize(geometry.quat_mul(visit.q[0], np.array([math.cos(0.35), math.sin(0.35), 0.0, 0.0])))  # 40 deg pitch
+    for t, q, words in ((visit.t[0], steep, "pitch/roll"), ([50.0, 60.0, -0.5], visit.q[0], "above the ground"),
+                        ([900.0, 60.0, 1.2], visit.q[0], "outside the rendered world")):
+        with pytest.raises(ValueError, match=words):
+            render_frame(campus, t, q, K)

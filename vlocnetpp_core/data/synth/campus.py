@@ -103,6 +103,7 @@ class Campus:
         self._paint_ground_labels(rng)
         self._compute_clearance()
         self._place_buildings(rng)
+        self._place_landmarks(rng)
         self._place_vegetation(rng)
         self._place_furniture(rng)
         self._make_dynamic_appearances(rng)
@@ -262,6 +263,60 @@ class Campus:
         self._building(rng, gx, gy, math.radians(float(rng.uniform(-12, 12))), 13.0, 8.5, float(rng.uniform(6.5, 8.5)), "glass")
         self.landmarks.append(("glass pavilion", gx, gy))
 
+    # ================================================================= unique landmarks
+    def _place_landmarks(self, rng: np.random.Generator) -> None:
+        """One-of-a-kind objects that make places recognisable (placed before trees and furniture)."""
+        X0, X1, Y1, Ym = self.X0, self.X1, self.Y1, self.Ym
+        b = self._b
+        thin_strip = self._atlas.add(tx.metal_strip(rng, 0.08, 3.0, 0x8C9196))
+        grey = self._cap(0x4A4F55)
+        # plaza: fountain and kiosk
+        px0, py0, px1, py1 = self.plaza
+        cx, cy = (px0 + px1) / 2, (py0 + py1) / 2
+        stone = self._atlas.add(tx.metal_strip(rng, 2.4, 0.6, 0xB5AFA3))
+        if self._free(cx, cy, 2.4):
+            b.cylinder(cx, cy, 2.4, 0.0, 0.55, OTHER, stone, self._cap(0x4F86A6))
+            self._occupy(cx, cy, 0.0, 5.0, 5.0)
+            self.landmarks.append(("fountain", cx, cy))
+        kx, ky = px0 + 2.5, py1 - 3.0
+        if self._free(kx, ky, 1.8):
+            kiosk = self._atlas.add(tx.panel_strip(rng, 3.0, 2.2, 2.6, [0xE74C3C, 0xF9E79F, 0xE74C3C, 0xFFFFFF]))
+            b.box(kx, ky, 0.0, 3.0, 2.2, 0.0, 2.6, OTHER, kiosk, self._cap(0x922B21))
+            self._occupy(kx, ky, 0.0, 3.2, 2.4)
+            self.landmarks.append(("kiosk", kx, ky))
+        # sculpture on the north lawn
+        for _ in range(40):
+            sx, sy = float(rng.uniform(X0 + 10, X1 - 10)), float(rng.uniform(Ym + 9, Y1 - 9))
+            if self._free(sx, sy, 2.0):
+                red = self._atlas.add(tx.panel_strip(rng, 0.9, 0.9, 5.0, [0xC0392B, 0xE74C3C]))
+                yel = self._atlas.add(tx.metal_strip(rng, 0.6, 3.4, 0xF4D03F))
+                b.box(sx, sy, math.radians(30), 0.9, 0.9, 0.0, 5.0, OTHER, red, self._cap(0xC0392B))
+                b.cylinder(sx + 1.4, sy + 0.4, 0.6, 0.0, 3.4, OTHER, yel, self._cap(0xF4D03F))
+                self._occupy(sx, sy, 0.0, 4.0, 3.0)
+                self.landmarks.append(("sculpture", sx, sy))
+                break
+        # billboard near the east entrance and a bus shelter near the south entrance
+        bx_, by_ = X1 + 11.0, self.Ye + 7.4
+        if self._free_along(np.array([bx_, by_]), np.array([1.0, 0.0]), 5.2):
+            colors = [int(c) for c in rng.choice([0x1ABC9C, 0xE67E22, 0x9B59B6, 0x2C3E50, 0xF1C40F, 0xE74C3C], 4, replace=False)]
+            board = self._atlas.add(tx.panel_strip(rng, 5.0, 0.15, 2.5, colors))
+            b.box(bx_, by_, 0.0, 5.0, 0.15, 2.4, 4.9, OTHER, board, self._cap(0x2C3E50))
+            for sgn in (1, -1):
+                b.cylinder(bx_ + sgn * 2.0, by_, 0.07, 0.0, 2.45, POLE, thin_strip, grey)
+            self._occupy(bx_, by_, 0.0, 5.2, 0.6)
+            self.landmarks.append(("billboard", bx_, by_))
+        sx, sy = self.Xs + 12.0, self.Y0 - 6.9
+        if self._free(sx, sy, 0.9, margin=0.1) and self._free_along(np.array([sx, sy]), np.array([1.0, 0.0]), 3.9):
+            glass = self._atlas.add(tx.glass_strip(3.6, 0.05, 2.2))
+            side = self._atlas.add(tx.glass_strip(1.4, 0.05, 2.2))
+            roof = self._atlas.add(tx.panel_strip(rng, 3.9, 1.7, 0.12, [0xBFC5C9]))
+            b.box(sx, sy - 0.6, 0.0, 3.6, 0.05, 0.1, 2.3, OTHER, glass, self._cap(0x9AA3A8))
+            for sgn in (1, -1):
+                b.box(sx + sgn * 1.8, sy + 0.05, math.pi / 2, 1.3, 0.05, 0.1, 2.3, OTHER, side, self._cap(0x9AA3A8))
+            b.box(sx, sy, 0.0, 3.9, 1.7, 2.3, 2.42, OTHER, roof, self._cap(0xBFC5C9))
+            self._occupy(sx, sy, 0.0, 4.0, 1.8)
+            self.landmarks.append(("bus shelter", sx, sy))
+
     # ================================================================= vegetation
     def _place_vegetation(self, rng: np.random.Generator) -> None:
         greens = [0x3E6B2A, 0x4C7A30, 0x35602A, 0x5A8236]
@@ -407,20 +462,8 @@ class Campus:
         # a low railing on the far side of the parking lot
         pk = self.parking_box
         fence(pk[2] - 0.3, pk[1] + 0.5, pk[2] - 0.3, pk[3] - 0.5, h=1.2, color=0x8C9196, spacing=2.0, mesh=0.5)
-        # plaza: fountain, kiosk, bollards, bike racks
+        # plaza bollards and bike racks near some buildings
         px0, py0, px1, py1 = self.plaza
-        cx, cy = (px0 + px1) / 2, (py0 + py1) / 2
-        stone = self._atlas.add(tx.metal_strip(rng, 2.4, 0.6, 0xB5AFA3))
-        if self._free(cx, cy, 2.4):
-            b.cylinder(cx, cy, 2.4, 0.0, 0.55, OTHER, stone, self._cap(0x4F86A6))
-            self._occupy(cx, cy, 0.0, 5.0, 5.0)
-            self.landmarks.append(("fountain", cx, cy))
-        kx, ky = px0 + 2.5, py1 - 3.0
-        if self._free(kx, ky, 1.8):
-            kiosk = self._atlas.add(tx.panel_strip(rng, 3.0, 2.2, 2.6, [0xE74C3C, 0xF9E79F, 0xE74C3C, 0xFFFFFF]))
-            b.box(kx, ky, 0.0, 3.0, 2.2, 0.0, 2.6, OTHER, kiosk, self._cap(0x922B21))
-            self._occupy(kx, ky, 0.0, 3.2, 2.4)
-            self.landmarks.append(("kiosk", kx, ky))
         for y in np.arange(py0 + 1.0, py1 - 0.5, 1.6):
             if self._free(px1 + 0.3, float(y), 0.1, margin=0.1):
                 b.cylinder(px1 + 0.3, float(y), 0.1, 0.0, 0.9, POLE, bollard_strip, grey)
@@ -443,38 +486,6 @@ class Campus:
                     b.box(float(p[0]), float(p[1]), yaw, 4.0, 0.08, 0.0, 0.85, OTHER, rack_strip, self._cap(0x9AA0A6), cutout=True)
                     self._occupy(float(p[0]), float(p[1]), yaw, 4.2, 0.4)
                     break
-        # sculpture on the north lawn
-        for _ in range(40):
-            sx, sy = float(rng.uniform(X0 + 10, X1 - 10)), float(rng.uniform(Ym + 9, Y1 - 9))
-            if self._free(sx, sy, 2.0):
-                red = self._atlas.add(tx.panel_strip(rng, 0.9, 0.9, 5.0, [0xC0392B, 0xE74C3C]))
-                yel = self._atlas.add(tx.metal_strip(rng, 0.6, 3.4, 0xF4D03F))
-                b.box(sx, sy, math.radians(30), 0.9, 0.9, 0.0, 5.0, OTHER, red, self._cap(0xC0392B))
-                b.cylinder(sx + 1.4, sy + 0.4, 0.6, 0.0, 3.4, OTHER, yel, self._cap(0xF4D03F))
-                self._occupy(sx, sy, 0.0, 4.0, 3.0)
-                self.landmarks.append(("sculpture", sx, sy))
-                break
-        # billboard near the east entrance and a bus shelter near the south entrance
-        bx_, by_ = X1 + 8.5, self.Ye + 8.5
-        if self._free(bx_, by_, 2.6, margin=0.1):
-            colors = [int(c) for c in rng.choice([0x1ABC9C, 0xE67E22, 0x9B59B6, 0x2C3E50, 0xF1C40F, 0xE74C3C], 4, replace=False)]
-            board = self._atlas.add(tx.panel_strip(rng, 5.0, 0.15, 2.5, colors))
-            b.box(bx_, by_, math.pi / 2, 5.0, 0.15, 2.4, 4.9, OTHER, board, self._cap(0x2C3E50))
-            for sgn in (1, -1):
-                b.cylinder(bx_, by_ + sgn * 2.0, 0.07, 0.0, 2.45, POLE, thin_strip, grey)
-            self._occupy(bx_, by_, math.pi / 2, 5.2, 0.6)
-            self.landmarks.append(("billboard", bx_, by_))
-        sx, sy = self.Xs + 12.0, self.Y0 - 7.4
-        if self._free(sx, sy, 1.9, margin=0.1):
-            glass = self._atlas.add(tx.glass_strip(3.6, 0.05, 2.2))
-            side = self._atlas.add(tx.glass_strip(1.4, 0.05, 2.2))
-            roof = self._atlas.add(tx.panel_strip(rng, 3.9, 1.7, 0.12, [0xBFC5C9]))
-            b.box(sx, sy - 0.6, 0.0, 3.6, 0.05, 0.1, 2.3, OTHER, glass, self._cap(0x9AA3A8))
-            for sgn in (1, -1):
-                b.box(sx + sgn * 1.8, sy + 0.05, math.pi / 2, 1.3, 0.05, 0.1, 2.3, OTHER, side, self._cap(0x9AA3A8))
-            b.box(sx, sy, 0.0, 3.9, 1.7, 2.3, 2.42, OTHER, roof, self._cap(0xBFC5C9))
-            self._occupy(sx, sy, 0.0, 4.0, 1.8)
-            self.landmarks.append(("bus shelter", sx, sy))
 
     # ================================================================= moving things
     def _make_dynamic_appearances(self, rng: np.random.Generator) -> None:
@@ -576,6 +587,9 @@ class Campus:
                 g.polygon(canvas, [(x0 + 1.5 * sgn, yy - 0.45), (x0 + 2.3 * sgn, yy), (x0 + 1.5 * sgn, yy + 0.45)], white)
 
         g.paint_albedo(rng, base, patterns)
+        g.detail = 0.6 * tx.tileable_noise(rng, 256, 1.2) + 0.8 * tx.tileable_noise(rng, 256, 4.0)
+        for lab, amount in ((ROAD, 0.10), (SIDEWALK, 0.07), (GRASS, 0.22), (BACKGROUND, 0.18)):
+            g.detail_amount[lab] = amount
 
     # ================================================================= sky, hills
     def _make_far_field(self, rng: np.random.Generator) -> None:

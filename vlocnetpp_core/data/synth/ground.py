@@ -15,6 +15,8 @@ from vlocnetpp_core.data.synth.textures import rgb, smooth_noise
 RES = 0.1  # metres per cell
 SHIFT = 4  # sub-pixel bits for cv2 drawing
 MIP_LEVELS = 4
+DETAIL_RES = 0.02  # metres per texel of the fine grain added to the ground near the camera
+DETAIL_FADE = (0.03, 0.12)  # pixel footprints (m) where the grain is full / gone
 OUTSIDE_RGB = (0x8A, 0x86, 0x5E)  # colour of the fields beyond the raster
 
 
@@ -27,6 +29,8 @@ class GroundMap:
         self.labels = np.full((self.rows, self.cols), fill_label, np.uint8)
         self.albedo: np.ndarray | None = None  # (rows, cols, 3) uint8 RGB, set by the campus
         self.mips: list[np.ndarray] = []
+        self.detail: np.ndarray | None = None  # (N, N) float32 tileable grain, unit std
+        self.detail_amount = np.zeros(256, np.float32)  # grain strength per class id
 
     # ----------------------------------------------------------------- coordinates
     def to_raster(self, x, y):

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-PPM = 10.0  # texels per metre at level 0
+PPM = 16.0  # texels per metre at level 0
 LEVELS = 3
 ATLAS_WIDTH = 4096
 GUTTER = 2 ** (LEVELS + 1)  # replicated border around each strip so mip levels do not bleed
@@ -40,6 +40,14 @@ def periodic_noise(rng: np.random.Generator, height: int, width: int, cell: floa
     r = np.linspace(0, 1, pad, endpoint=False, dtype=np.float32)
     out[:, :pad] = r * n[:, :pad] + (1 - r) * n[:, width : width + pad]
     return out
+
+
+def tileable_noise(rng: np.random.Generator, n: int, cell: float) -> np.ndarray:
+    """``(n, n)`` float32 noise, unit standard deviation, seamless when tiled, features of ``cell`` texels."""
+    spec = np.fft.rfft2(rng.standard_normal((n, n)))
+    k = np.hypot(np.fft.fftfreq(n)[:, None], np.fft.rfftfreq(n)[None, :])
+    out = np.fft.irfft2(spec * np.exp(-((k * cell) ** 2)), s=(n, n))
+    return (out / max(float(out.std()), 1e-9)).astype(np.float32)
 
 
 def rgb(hex_or_tuple) -> np.ndarray:

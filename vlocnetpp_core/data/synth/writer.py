@@ -21,6 +21,8 @@ import os
 import shutil
 import tempfile
 import time
+from collections import deque
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
 import cv2
@@ -130,6 +132,7 @@ def _render_into(root: Path, scene: str, seed: int, train_loops: int, test_loops
     samples = []
     trajectories = []
     bar = tqdm(total=total, disable=not progress, unit="frame", desc=f"synth {scene}", dynamic_ncols=True)
+    writer = _BackgroundWriter()
     try:
         for split, n_loops in loops.items():
             if n_loops == 0:
@@ -156,16 +159,17 @@ def _render_into(root: Path, scene: str, seed: int, train_loops: int, test_loops
                     t0 = time.perf_counter()
                     rgb, labels, depth = render_frame(campus, vals[:3], vals[3:], K, visit.lighting, visit.objects_at(i))
                     render_time += time.perf_counter() - t0
-                    _imwrite(img_dir / f"{name}.png", rgb[..., ::-1])
-                    _imwrite(lab_dir / f"{name}.png", labels)
-                    _imwrite(col_dir / f"{name}.png", colorize(labels)[..., ::-1])
-                    write_pfm(dep_dir / f"{name}.pfm", depth)
+                    files = ((img_dir / f"{name}.png", rgb[..., ::-1]), (lab_dir / f"{name}.png", labels),
+                             (col_dir / f"{name}.png", colorize(labels)[..., ::-1]), (dep_dir / f"{name}.pfm", depth))
+                    writer.put(files)
                     lines.append(line)
                     if loop * frames + i in picks:
                         samples.append((f"{split} loop {loop} {name}", rgb, labels, depth))
                     bar.update(1)
             (root / "DeepLoc" / split / "poses.txt").write_text("\n".join(lines) + "\n")
+        writer.finish()
     finally:
+        writer.close()
         bar.close()
     preview = root / "preview"
     preview.mkdir()
@@ -197,6 +201,37 @@ def _render_into(root: Path, scene: str, seed: int, train_loops: int, test_loops
         "render_seconds": render_time,
         "render_fps": total / render_time if render_time > 0 else float("nan"),
     }
+
+
+class _BackgroundWriter:
+    """Encodes and writes frame files on one worker thread while the next frame renders (cv2 releases the GIL)."""
+
+    def __init__(self, max_pending: int = 8):
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="synth-writer")
+        self._pending: deque[Future] = deque()
+        self._max = max_pending
+
+    def put(self, files: tuple[tuple[Path, np.ndarray], ...]) -> None:
+        self._pending.append(self._pool.submit(_write_files, files))
+        while len(self._pending) > self._max:
+            self._pending.popleft().result()  # re-raises a failed write
+
+    def finish(self) -> None:
+        while self._pending:
+            self._pending.popleft().result()
+
+    def close(self) -> None:
+        for f in self._pending:
+            f.cancel()
+        self._pool.shutdown(wait=True)
+
+
+def _write_files(files: tuple[tuple[Path, np.ndarray], ...]) -> None:
+    for path, arr in files:
+        if path.suffix == ".pfm":
+            write_pfm(path, arr)
+        else:
+            _imwrite(path, arr)
 
 
 def _imwrite(path: Path, img: np.ndarray) -> None:

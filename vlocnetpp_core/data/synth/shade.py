@@ -1,0 +1,186 @@
+"""Colours of a level render: sky, lit and shadowed ground, hills, textured prisms and crowns, haze.
+
+Surfaces sample their albedo bilinearly from mip-mapped textures (the ground raster, the atlas),
+are lit by ``Lighting`` (ambient + sun * max(0, n . l), ground shadows from the campus), glass
+mixes in the mirrored sky/skyline, and everything fades to the horizon colour with distance.
+"""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+
+from vlocnetpp_core.data.synth.campus import HILLS_MAX_M, SKY, Campus
+from vlocnetpp_core.data.synth.ground import DETAIL_FADE, DETAIL_RES, MIP_LEVELS, OUTSIDE_RGB, RES
+from vlocnetpp_core.data.synth.lighting import Lighting
+from vlocnetpp_core.data.synth.raycast import E_OFFSET, HILLS, SKY_CODE, LevelCamera, LevelImage
+from vlocnetpp_core.data.synth.textures import LEVELS, PPM
+
+
+def remap_points(src: np.ndarray, x: np.ndarray, y: np.ndarray, border: int) -> np.ndarray:
+    """Bilinear samples ``(N, C)`` of ``src`` at pixel coordinates ``x, y (N,)`` (cv2.remap, in rows of 4096)."""
+    n = len(x)
+    width = 4096
+    rows = max(1, -(-n // width))
+    mx = np.zeros(rows * width, np.float32)
+    my = np.zeros(rows * width, np.float32)
+    mx[:n], my[:n] = x, y
+    out = cv2.remap(src, mx.reshape(rows, width), my.reshape(rows, width), cv2.INTER_LINEAR, borderMode=border)
+    return out.reshape(rows * width, -1)[:n]
+
+
+def _sample_atlas(campus: Campus, ax: np.ndarray, ay: np.ndarray, lod: np.ndarray) -> np.ndarray:
+    """Bilinear, mip-blended atlas RGBA (N, 4) float32 in [0, 1] at level-0 texel coords."""
+    out = np.zeros((len(ax), 4), np.float32)
+    lod = np.clip(lod, 0, LEVELS - 1)
+    for L in range(LEVELS):
+        w = np.clip(1.0 - np.abs(lod - L), 0.0, 1.0)
+        if not (w > 0).any():
+            continue
+        s = 2.0**L
+        smp = remap_points(campus.atlas[L], (ax + 0.5) / s - 0.5, (ay + 0.5) / s - 0.5, cv2.BORDER_REPLICATE)
+        out += smp.astype(np.float32) * (w / 255.0)[:, None]
+    return out
+
+
+def shade(campus: Campus, cam: LevelCamera, img: LevelImage, lt: Lighting) -> None:
+    """Colour (``img.rgb``) and class (``img.labels``) of every level pixel from its surface code."""
+    n_u32 = cam.n_u.astype(np.float32)
+    Hl, Wl = cam.height, cam.width
+    h = cam.h
+    zbuf, code = img.zbuf, img.code
+    col = np.empty((Hl, Wl, 3), np.float32)
+    labels = np.empty((Hl, Wl), np.uint8)
+    cap = np.zeros((Hl, Wl), bool)
+    sd = lt.sun_direction().astype(np.float32)
+    tint = np.asarray(lt.tint, np.float32)
+    r0 = img.g_row0  # rows >= r0 look below the horizon: sky above, ground below; the rest overwrite
+    if r0 > 0:
+        az = np.broadcast_to(np.arctan2(cam.dy, cam.dx).astype(np.float32)[None, :], (r0, Wl))
+        col[:r0] = _sky(campus, lt, np.arctan(-cam.sigma[:r0]), az)
+        labels[:r0] = SKY
+    if r0 < Hl:
+        col[r0:], labels[r0:] = _ground(campus, cam, lt, r0, tint)
+    hil = code == HILLS
+    if hil.any():
+        ys, xs = np.nonzero(hil)
+        hgt = h - img.rho_h[xs] * cam.sigma[ys, xs]
+        tex = campus.hills_rgb
+        c = remap_points(tex, img.theta[xs] / (2 * math.pi) * tex.shape[1] - 0.5, (1 - hgt / HILLS_MAX_M) * tex.shape[0] - 0.5,
+                         cv2.BORDER_REPLICATE).astype(np.float32)
+        col[ys, xs] = c * (tint * np.float32((lt.ambient + 0.6 * lt.sun) / 255.0))
+        labels[ys, xs] = 0
+    P = img.slots.get("P")
+    if P:
+        ys, xs = np.nonzero((code >= 0) & (code < E_OFFSET))
+        s = code[ys, xs]
+        Z = zbuf[ys, xs]
+        is_cap = Z * n_u32[xs] > P["r1"][s] * np.float32(1 + 1e-4) + np.float32(1e-4)
+        cap[ys, xs] = is_cap
+        side_light = (lt.ambient + lt.sun * np.maximum(P["nx"] * sd[0] + P["ny"] * sd[1], 0.0)).astype(np.float32)  # per slot
+        down = cam.s_v[ys] > 0
+        light = np.where(is_cap, np.where(down, np.float32(lt.ambient + lt.sun * max(sd[2], 0.0)), np.float32(lt.ambient)), side_light[s])
+        ax = np.where(is_cap, P["cap_x"][s], P["ax"][s])
+        ay = np.where(is_cap, P["cap_y"][s], P["ay"][s] - (h - Z * cam.s_v[ys]) * np.float32(PPM))
+        tex = _sample_atlas(campus, ax, ay, np.log2(np.maximum(Z * np.float32(PPM / cam.fx), 1e-6)))
+        c = tex[:, :3] * light[:, None]
+        refl = np.where(is_cap, np.float32(0.0), tex[:, 3])
+        m = np.nonzero(refl > 0.02)[0]
+        if len(m):
+            r = refl[m, None]
+            c[m] = c[m] * (1 - r) + r * _reflection(campus, cam, lt, ys[m], xs[m], P["nx"][s[m]], P["ny"][s[m]])
+        col[ys, xs] = c * tint
+        labels[ys, xs] = P["label"][s]
+    E = img.slots.get("E")
+    if E:
+        ys, xs = np.nonzero(code >= E_OFFSET)
+        pr = E["prims"]
+        p = E["pid"][code[ys, xs] - E_OFFSET]
+        Z = zbuf[ys, xs]
+        X = cam.x + Z * cam.dx[xs] - pr.cx[p]
+        Y = cam.y + Z * cam.dy[xs] - pr.cy[p]
+        zz = h - Z * cam.s_v[ys]
+        bv = (pr.z1[p] - pr.z0[p]) / 2
+        az = np.mod(np.arctan2(Y, X), 2 * math.pi)
+        ax = pr.tx[p] + az / (2 * math.pi) * pr.tw[p] * PPM - 0.5
+        ay = pr.ty[p] + np.clip((pr.z1[p] - zz) / (2 * bv), 0, 1) * pr.th[p] * PPM - 0.5
+        tex = _sample_atlas(campus, ax, ay, np.log2(np.maximum(Z * PPM / cam.fx, 1e-6)))
+        a2 = pr.a[p] ** 2
+        nx, ny, nz = X / a2, Y / a2, (zz - pr.z0[p] - bv) / bv**2
+        lam = np.maximum((nx * sd[0] + ny * sd[1] + nz * sd[2]) / np.sqrt(nx * nx + ny * ny + nz * nz), 0.0)
+        col[ys, xs] = tex[:, :3] * (lt.ambient + lt.sun * lam).astype(np.float32)[:, None] * tint
+        labels[ys, xs] = pr.label[p]
+    # haze: c = c * f + horizon * (1 - f) with f = exp(-distance / haze); the sky keeps f = 1
+    f = np.exp(np.where(code != SKY_CODE, zbuf, np.float32(0.0)) * (n_u32 / np.float32(-lt.haze_m))[None, :])
+    hor = np.empty_like(col)
+    hor[:] = np.asarray(lt.sky_horizon, np.float32)
+    col = cv2.blendLinear(col, hor, f, np.float32(1.0) - f)
+    img.rgb = cv2.convertScaleAbs(col, alpha=255.0)
+    img.labels = labels
+    img.cap = cap
+
+
+def _ground(campus: Campus, cam: LevelCamera, lt: Lighting, r0: int, tint: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Colour (lit, tinted) and class ids of the ground seen by level rows ``r0:``, mip-mapped by distance."""
+    g = campus.ground
+    h = cam.h
+    zg = (h / cam.s_v[r0:])[:, None]
+    gx = (cam.x + zg * cam.dx[None, :]).astype(np.float32)
+    gy = (cam.y + zg * cam.dy[None, :]).astype(np.float32)
+    mc = ((gx - g.x0) / RES - 0.5).astype(np.float32)
+    mr = ((gy - g.y0) / RES - 0.5).astype(np.float32)
+    fp = zg[:, 0] / math.sqrt(cam.fx * cam.fy) * np.sqrt(np.maximum(zg[:, 0] / h, 1.0))  # metres per pixel
+    lod = np.clip(np.log2(np.maximum(fp / RES, 1e-6)), 0, MIP_LEVELS - 1).astype(np.float32)
+    alb = np.zeros(gx.shape + (3,), np.float32)
+    border = tuple(int(v) for v in OUTSIDE_RGB)
+    for L in range(MIP_LEVELS):
+        w = np.clip(1.0 - np.abs(lod - L), 0, 1)
+        rows = np.nonzero(w > 0)[0]
+        if len(rows) == 0:
+            continue
+        a, b = rows[0], rows[-1] + 1
+        s = 2.0**L
+        smp = cv2.remap(g.mips[L], (mc[a:b] + 0.5) / s - 0.5, (mr[a:b] + 0.5) / s - 0.5, cv2.INTER_LINEAR,
+                        borderMode=cv2.BORDER_CONSTANT, borderValue=border)
+        alb[a:b] += smp.astype(np.float32) * (w[a:b] / 255.0)[:, None, None]
+    outside_light = lt.ambient + lt.sun * max(0.0, math.sin(lt.sun_elevation))
+    shade = cv2.remap(campus.ground_light(lt), (mc + 0.5) / 2 - 0.5, (mr + 0.5) / 2 - 0.5, cv2.INTER_LINEAR,
+                      borderMode=cv2.BORDER_CONSTANT, borderValue=outside_light)
+    labels = cv2.remap(g.labels, np.rint(mc), np.rint(mr), cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    near = np.nonzero(fp < DETAIL_FADE[1])[0]  # fine grain where a pixel is smaller than a raster cell
+    if len(near):
+        a = near[0]
+        fade = np.clip((DETAIL_FADE[1] - fp[a:]) / (DETAIL_FADE[1] - DETAIL_FADE[0]), 0, 1).astype(np.float32)
+        grain = cv2.remap(g.detail, gx[a:] / np.float32(DETAIL_RES), gy[a:] / np.float32(DETAIL_RES), cv2.INTER_LINEAR,
+                          borderMode=cv2.BORDER_WRAP)
+        shade[a:] *= 1.0 + grain * g.detail_amount[labels[a:]] * fade[:, None]
+    alb *= shade[..., None]
+    alb *= tint
+    return alb, labels
+
+
+def _sky(campus: Campus, lt: Lighting, elevation: np.ndarray, azimuth: np.ndarray) -> np.ndarray:
+    """Sky colour ``(N, 3)`` float32 for directions (radians), looked up in the lighting's sky panorama."""
+    pano = campus.sky_panorama(lt)
+    mx = (np.mod(azimuth, 2 * math.pi) * (pano.shape[1] / (2 * math.pi)) - 0.5).astype(np.float32)
+    my = np.clip(elevation * (pano.shape[0] / (math.pi / 2)) - 0.5, 0, pano.shape[0] - 1).astype(np.float32)
+    if np.ndim(mx) == 1:
+        return remap_points(pano, mx, my, cv2.BORDER_WRAP)
+    return cv2.remap(pano, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+
+
+def _reflection(campus: Campus, cam: LevelCamera, lt: Lighting, ys, xs, nx, ny) -> np.ndarray:
+    """What a vertical mirror with horizontal normal ``(nx, ny)`` shows at level pixels ``(ys, xs)``."""
+    vx, vy, vz = cam.dx[xs].astype(np.float32), cam.dy[xs].astype(np.float32), -cam.s_v[ys]
+    dot = vx * nx + vy * ny
+    rx, ry = vx - 2 * dot * nx, vy - 2 * dot * ny
+    el = np.arctan2(vz, np.hypot(rx, ry))
+    az = np.arctan2(ry, rx)
+    sky = _sky(campus, lt, el, az)
+    nb = len(campus.skyline)
+    line = campus.skyline[(np.mod(az, 2 * math.pi) / (2 * math.pi) * nb).astype(int) % nb]
+    fac = np.float32(lt.ambient + 0.4 * lt.sun)
+    below = np.where((el < 0)[:, None], np.array([0.30, 0.34, 0.26], np.float32), np.array([0.42, 0.40, 0.38], np.float32)) * fac
+    return np.where((el > line)[:, None], sky, below)
