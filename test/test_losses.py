@@ -127,7 +127,7 @@ def test_optimiser_steps_drive_every_task_loss_down():
     keys = ("x", "q", "x_rel", "x_vo", "q_vo", "seg", "depth")
     history = []
     with single_thread():
-        for _ in range(120):
+        for _ in range(150):
             loss, parts = crit(model.forward_clip(batch["image"], batch["K"]), batch)
             optimizer.zero_grad()
             loss.backward()

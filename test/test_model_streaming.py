@@ -68,6 +68,17 @@ def test_state_carries_the_previous_frame(model):
         torch.testing.assert_close(out_a.rel_quat, rel_quat)
 
 
+def test_position_prior_shifts_the_global_translation():
+    model = VLocNetPP(lite()).eval()
+    image = torch.rand(1, 3, H, W)
+    with torch.no_grad():
+        before, _ = model.step(image, tasks=("loc",))
+        model.set_position_prior([100.0, -20.0, 3.5])
+        after, _ = model.step(image, tasks=("loc",))
+    torch.testing.assert_close(after.xyz - before.xyz, torch.tensor([[100.0, -20.0, 3.5]]))
+    torch.testing.assert_close(after.quat, before.quat)
+
+
 def test_tasks_run_only_their_streams(model):
     batch = random_clip_batch(1, 2, W, H, seed=3)
     model.eval()

@@ -71,8 +71,10 @@ class ModelConfig:
             out.append("depths must be >= 1 and widths even and >= 2")
         elif not 1 <= self.res4_fusion_block <= self.depths[2]:
             out.append(f"res4_fusion_block must be in 1..{self.depths[2]} (the number of Res4 blocks)")
-        if len(self.semantic_res5_dilations) < 1:
-            out.append("semantic_res5_dilations needs at least one entry")
+        sizes = ("num_classes", "stem_width", "expansion", "fc_width", "depth_width", "semantic_res4_dilation")
+        out += [f"{k} must be >= 1, got {getattr(self, k)}" for k in sizes if getattr(self, k) < 1]
+        if len(self.semantic_res5_dilations) < 1 or min(self.semantic_res5_dilations) < 1:
+            out.append("semantic_res5_dilations needs at least one entry, all >= 1")
         lo, hi = self.depth_range
         if not 0 < lo < hi:
             out.append(f"depth_range must be 0 < min < max, got {self.depth_range}")
@@ -99,7 +101,7 @@ class ModelConfig:
         """Build from a mapping; ``source`` names the file in error messages."""
         if not isinstance(data, dict):
             raise DataError(source, f"expected a mapping of model config keys, got {type(data).__name__}")
-        fields = {f.name: f for f in dataclasses.fields(cls)}
+        fields = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(data) - set(fields))
         if unknown:
             raise DataError(source, f"unknown model config key(s) {unknown}; known keys: {sorted(fields)}")

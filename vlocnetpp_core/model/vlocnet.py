@@ -156,6 +156,13 @@ class VLocNetPP(nn.Module):
         self.register_buffer("std", torch.tensor(config.std).view(1, 3, 1, 1), persistent=False)
         init_weights(self)
 
+    def set_position_prior(self, xyz: Iterable[float]) -> None:
+        """Start the global translation output at ``xyz`` (metres, world frame; e.g. the mean training
+        position) instead of the origin, so the head learns offsets rather than walking to the scene."""
+        bias = self.global_stream.head.fc_xyz.bias
+        with torch.no_grad():
+            bias.copy_(torch.as_tensor(list(xyz), dtype=bias.dtype))
+
     # ------------------------------------------------------------------ streaming
 
     def step(
@@ -184,76 +191,85 @@ class VLocNetPP(nn.Module):
         """
         run = _check_tasks(tasks)
         self._check_image(image)
-        cfg = self.config
-        height, width = image.shape[-2:]
         prev = state if state is not None else StreamState()
         x = (image - self.mean) / self.std
-        out = StepOutput()
-        new = StreamState()
-        taps = out.taps
-
-        do_seg = "seg" in run
-        do_warp = cfg.warping and do_seg
-        do_loc = "loc" in run
+        out, new = StepOutput(), StreamState()
+        do_seg, do_loc = "seg" in run, "loc" in run
+        do_warp = self.config.warping and do_seg
         do_odo = "vo" in run or (do_warp and warp_rel_pose is None)
         if do_warp and K is None:
             raise ValueError("K (B, 3, 3), the intrinsics at the network input size, is required for warping")
 
-        if do_loc or do_odo:
-            res3 = self.trunk(x)
-            taps["res3"] = res3
-
+        res3 = self.trunk(x) if do_loc or do_odo else None
+        if res3 is not None:
+            out.taps["res3"] = res3
         if do_odo:
-            odo_res4 = self.odometry.res4(res3)
-            prev_odo = prev.odo_res4 if prev.odo_res4 is not None else odo_res4
-            _check_state(prev_odo, odo_res4, "odo_res4")
-            out.rel_xyz, out.rel_quat, taps["odo_res5"] = self.odometry(prev_odo, odo_res4)
-            taps["odo_res4"] = new.odo_res4 = odo_res4
-
+            self._odometry_step(res3, prev, out, new)
+        sem_res5c = None
         if do_seg:
-            sem = self.semantic
-            sem_res3 = sem.res3(sem.res2(sem.stem(x)))
-            taps["sem_res3"] = sem_res3
-            if self.depth_head is not None:
-                out.depth = self.depth_head(sem_res3, (height, width))
-            sem_res4f = sem.res4(sem_res3)
-            taps["sem_res4f"] = sem_res4f
-            new.sem_res4f = sem_res4f if do_warp else None
-            warper = None
-            if do_warp and prev.sem_res4f is not None:
-                rel = warp_rel_pose if warp_rel_pose is not None else pose_to_matrix(out.rel_xyz, out.rel_quat)
-                warper = _Warper(depth.to(image.dtype) if depth is not None else out.depth, rel, K)
-            fused4f = self._warp_fuse(sem.warp_fusion_res4f, sem_res4f, prev.sem_res4f, warper, "sem_res4f", taps) if do_warp else sem_res4f
-            sem_res5c = sem.res5(fused4f)
-            taps["sem_res5c"] = sem_res5c
-            new.sem_res5c = sem_res5c if do_warp else None
-            fused5c = self._warp_fuse(sem.warp_fusion_res5c, sem_res5c, prev.sem_res5c, warper, "sem_res5c", taps) if do_warp else sem_res5c
-            out.seg_logits = sem.decoder(fused5c, sem_res3)
-
+            if do_warp and warp_rel_pose is None:
+                warp_rel_pose = pose_to_matrix(out.rel_xyz, out.rel_quat)
+            sem_res5c = self._semantic_step(x, prev, out, new, K, depth, warp_rel_pose if do_warp else None)
         if do_loc:
-            g = self.global_stream
-            h = res3
-            for block in g.res4[: cfg.res4_fusion_block]:
-                h = block(h)
-            taps["res4c"] = h
-            if self.semantic_fusion is not None and do_seg:
-                h = taps["res4c_fused"] = self.semantic_fusion(h, fused5c)
-            for block in g.res4[cfg.res4_fusion_block :]:
-                h = block(h)
-            taps["res4f"] = h
-            res5a = g.res5[0](h)
-            taps["res5a"] = res5a
-            h = res5a
-            if g.temporal_fusion is not None:
-                prev5a = prev.res5a if prev.res5a is not None else res5a
-                _check_state(prev5a, res5a, "res5a")
-                h = taps["res5a_fused"] = g.temporal_fusion(res5a, prev5a)
-                new.res5a = res5a
-            for block in g.res5[1:]:
-                h = block(h)
-            taps["res5c"] = h
-            out.xyz, out.quat = g.head(h)
+            self._global_step(res3, sem_res5c, prev, out, new)
         return out, new
+
+    def _odometry_step(self, res3: torch.Tensor, prev: StreamState, out: StepOutput, new: StreamState) -> None:
+        """Siamese Res4 of this frame (cached for the next), Res5 on ``prev ++ current``, relative pose."""
+        odo_res4 = self.odometry.res4(res3)
+        prev_res4 = prev.odo_res4 if prev.odo_res4 is not None else odo_res4
+        _check_state(prev_res4, odo_res4, "odo_res4")
+        out.rel_xyz, out.rel_quat, out.taps["odo_res5"] = self.odometry(prev_res4, odo_res4)
+        out.taps["odo_res4"] = new.odo_res4 = odo_res4
+
+    def _semantic_step(self, x: torch.Tensor, prev: StreamState, out: StepOutput, new: StreamState, K: torch.Tensor | None,
+                       depth: torch.Tensor | None, warp_rel_pose: torch.Tensor | None) -> torch.Tensor:
+        """Encoder, depth head, Res4f / Res5c warp fusions (when ``warp_rel_pose`` is given), decoder.
+
+        Returns the (fused) Res5c features that the global stream fuses at Res4c.
+        """
+        sem, taps = self.semantic, out.taps
+        sem_res3 = taps["sem_res3"] = sem.res3(sem.res2(sem.stem(x)))
+        if self.depth_head is not None:
+            out.depth = self.depth_head(sem_res3, tuple(x.shape[-2:]))
+        sem_res4f = taps["sem_res4f"] = sem.res4(sem_res3)
+        if warp_rel_pose is None:  # warping switched off
+            sem_res5c = taps["sem_res5c"] = sem.res5(sem_res4f)
+            out.seg_logits = sem.decoder(sem_res5c, sem_res3)
+            return sem_res5c
+        warper = None
+        if prev.sem_res4f is not None:
+            warper = _Warper(depth.to(x.dtype) if depth is not None else out.depth, warp_rel_pose, K)
+        fused4f = self._warp_fuse(sem.warp_fusion_res4f, sem_res4f, prev.sem_res4f, warper, "sem_res4f", taps)
+        sem_res5c = taps["sem_res5c"] = sem.res5(fused4f)
+        fused5c = self._warp_fuse(sem.warp_fusion_res5c, sem_res5c, prev.sem_res5c, warper, "sem_res5c", taps)
+        new.sem_res4f, new.sem_res5c = sem_res4f, sem_res5c
+        out.seg_logits = sem.decoder(fused5c, sem_res3)
+        return fused5c
+
+    def _global_step(self, res3: torch.Tensor, sem_res5c: torch.Tensor | None, prev: StreamState, out: StepOutput,
+                     new: StreamState) -> None:
+        """Res4 with the semantic AWF after block ``res4_fusion_block``, Res5a with the temporal AWF, Res5, pose."""
+        g, taps, k = self.global_stream, out.taps, self.config.res4_fusion_block
+        h = res3
+        for block in g.res4[:k]:
+            h = block(h)
+        taps["res4c"] = h
+        if self.semantic_fusion is not None and sem_res5c is not None:
+            h = taps["res4c_fused"] = self.semantic_fusion(h, sem_res5c)
+        for block in g.res4[k:]:
+            h = block(h)
+        taps["res4f"] = h
+        res5a = h = taps["res5a"] = g.res5[0](h)
+        if g.temporal_fusion is not None:
+            prev5a = prev.res5a if prev.res5a is not None else res5a
+            _check_state(prev5a, res5a, "res5a")
+            h = taps["res5a_fused"] = g.temporal_fusion(res5a, prev5a)
+            new.res5a = res5a
+        for block in g.res5[1:]:
+            h = block(h)
+        taps["res5c"] = h
+        out.xyz, out.quat = g.head(h)
 
     def _warp_fuse(self, fusion: nn.Module, current: torch.Tensor, previous: torch.Tensor | None, warper: _Warper | None,
                    name: str, taps: dict[str, torch.Tensor]) -> torch.Tensor:
