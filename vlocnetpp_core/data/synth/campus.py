@@ -614,12 +614,13 @@ class Campus:
         return self._cached("ground", lighting, lambda: _ground_light(self, lighting))
 
     def sky_panorama(self, lighting: Lighting) -> np.ndarray:
-        """Sky colour ``(256, 2048, 3)`` float32 over elevation (rows, 0 to 90 deg) and azimuth (columns, 0 to 360 deg)."""
+        """Sky colour ``(256, 2048, 3)`` uint8 RGB over elevation (rows, 0 to 90 deg) and azimuth (columns, 0 to 360 deg)."""
         def make():
             rows, cols = self.clouds.shape
             el = ((np.arange(rows) + 0.5) * (math.pi / 2 / rows)).astype(np.float32)[:, None]
             az = ((np.arange(cols) + 0.5) * (2 * math.pi / cols)).astype(np.float32)[None, :]
-            return np.ascontiguousarray(sky_color(lighting, el + 0 * az, az + 0 * el, self.clouds), dtype=np.float32)
+            sky = sky_color(lighting, el + 0 * az, az + 0 * el, self.clouds)
+            return np.clip(sky * 255.0 + 0.5, 0, 255).astype(np.uint8)
 
         return self._cached("sky", lighting, make)
 

@@ -16,7 +16,7 @@ RES = 0.1  # metres per cell
 SHIFT = 4  # sub-pixel bits for cv2 drawing
 MIP_LEVELS = 4
 DETAIL_RES = 0.02  # metres per texel of the fine grain added to the ground near the camera
-DETAIL_FADE = (0.03, 0.12)  # pixel footprints (m) where the grain is full / gone
+DETAIL_FADE = (0.025, 0.08)  # pixel footprints (m) where the grain is full / gone
 OUTSIDE_RGB = (0x8A, 0x86, 0x5E)  # colour of the fields beyond the raster
 
 

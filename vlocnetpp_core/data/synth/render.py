@@ -105,8 +105,7 @@ def _exact_depth(campus, prims, img, cam: LevelCamera, R, rx, ry, ri, ci, dz_lev
     h = np.float32(cam.h)
     depth = np.zeros(codef.shape, np.float32)
     with np.errstate(divide="ignore", invalid="ignore"):
-        g = codef == GROUND
-        depth[g] = -h / dwz[g]
+        np.divide(-h, dwz, out=depth, where=codef == GROUND)
         m = codef == HILLS
         if m.any():
             ox, oy = cam.x - campus.center[0], cam.y - campus.center[1]
@@ -142,8 +141,7 @@ def _exact_depth(campus, prims, img, cam: LevelCamera, R, rx, ry, ri, ci, dz_lev
             B = (q * d).sum(0)
             C = (q * q).sum(0) - pr.a[p] ** 2
             depth[m] = (-B - np.sqrt(B * B - A * C)) / A
-        bad = ~np.isfinite(depth) | (depth <= 0) | (np.abs(depth - fallback) > 0.25 * fallback + 0.1)
-        depth = np.where(bad, fallback, depth)
-    depth[codef == SKY_CODE] = 0.0
-    depth[~np.isfinite(depth)] = 0.0
-    return depth.astype(np.float32)
+        good = (depth > 0) & (np.abs(depth - fallback) <= 0.25 * fallback + 0.1)  # False for NaN
+        depth = np.where(good, depth, fallback)
+    depth[(codef == SKY_CODE) | ~np.isfinite(depth)] = 0.0
+    return depth.astype(np.float32, copy=False)

@@ -162,13 +162,15 @@ def _ground(campus: Campus, cam: LevelCamera, lt: Lighting, r0: int, tint: np.nd
 
 
 def _sky(campus: Campus, lt: Lighting, elevation: np.ndarray, azimuth: np.ndarray) -> np.ndarray:
-    """Sky colour ``(N, 3)`` float32 for directions (radians), looked up in the lighting's sky panorama."""
+    """Sky colour ``(..., 3)`` float32 in [0, 1] for directions (radians), from the lighting's sky panorama."""
     pano = campus.sky_panorama(lt)
     mx = (np.mod(azimuth, 2 * math.pi) * (pano.shape[1] / (2 * math.pi)) - 0.5).astype(np.float32)
     my = np.clip(elevation * (pano.shape[0] / (math.pi / 2)) - 0.5, 0, pano.shape[0] - 1).astype(np.float32)
     if np.ndim(mx) == 1:
-        return remap_points(pano, mx, my, cv2.BORDER_WRAP)
-    return cv2.remap(pano, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+        out = remap_points(pano, mx, my, cv2.BORDER_WRAP)
+    else:
+        out = cv2.remap(pano, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+    return out.astype(np.float32) * np.float32(1 / 255)
 
 
 def _reflection(campus: Campus, cam: LevelCamera, lt: Lighting, ys, xs, nx, ny) -> np.ndarray:
