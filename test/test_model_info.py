@@ -36,3 +36,16 @@ def test_model_info_bad_config_is_one_line_error(tmp_path, capsys):
     assert main(["model-info", "--config", str(tmp_path / "missing.yaml")]) == 2
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "missing.yaml" in err
+
+
+def test_model_info_from_the_install_tree_finds_the_shipped_configs(colcon_install):
+    """Outside the repository the named configs resolve to share/vlocnetpp_ros/config of the install."""
+    import subprocess
+
+    from conftest import install_env
+
+    exe = colcon_install / "vlocnetpp_ros" / "lib" / "vlocnetpp_ros" / "vlocnetpp"
+    out = subprocess.run([str(exe), "model-info", "--config", "lite", "--json"], env=install_env(colcon_install), cwd="/",
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert json.loads(out.stdout)["params_total"] == sum(p.numel() for p in VLocNetPP(load_model_config("lite")).parameters())
