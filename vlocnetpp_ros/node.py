@@ -34,6 +34,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.exceptions import NameValidationException, ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
@@ -79,11 +80,14 @@ def default_checkpoint() -> Path:
         candidates.append(Path(get_package_share_directory(PACKAGE)) / DEFAULT_MODEL)
     except Exception:  # PackageNotFoundError, or ament_index not importable
         pass
-    candidates.append(Path(__file__).resolve().parents[1] / DEFAULT_MODEL)
+    source = Path(__file__).resolve().parents[1]
+    if (source / "package.xml").is_file():  # running from a source checkout (editable install)
+        candidates.append(source / DEFAULT_MODEL)
     for path in candidates:
         if path.is_file():
             return path
-    raise UserError(f"no 'checkpoint' parameter given and the shipped model is missing (looked for {', '.join(map(str, candidates))}); "
+    looked = ", ".join(map(str, candidates)) or f"share/{PACKAGE}/{DEFAULT_MODEL}, but {PACKAGE} is not on AMENT_PREFIX_PATH"
+    raise UserError(f"no 'checkpoint' parameter given and the shipped model is missing (looked for {looked}); "
                     "set one with --ros-args -p checkpoint:=/path/NAME.safetensors")
 
 
@@ -123,22 +127,46 @@ class LocalizerNode(Node):
         self.odom_pub = self.create_publisher(Odometry, "vlocnet/odometry", 10)
         self.seg_pub = self.create_publisher(Image, "vlocnet/segmentation", 10) if p["publish_segmentation"] else None
         self.diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
-        if p["use_compressed"]:
-            image_topic = p["image_topic"].rstrip("/") + "/compressed"
-            self.create_subscription(CompressedImage, image_topic, self._on_image, CAMERA_QOS)
-        else:
-            image_topic = p["image_topic"]
-            self.create_subscription(Image, image_topic, self._on_image, CAMERA_QOS)
+        image_topic = p["image_topic"].rstrip("/") + "/compressed" if p["use_compressed"] else p["image_topic"]
+        self._inputs = {image_topic: (CompressedImage if p["use_compressed"] else Image, self._on_image)}
         if p["depth_topic"]:
-            self.create_subscription(Image, p["depth_topic"], self._on_depth, CAMERA_QOS)
+            self._inputs[p["depth_topic"]] = (Image, self._on_depth)
         if p["camera_info_topic"]:
-            self.create_subscription(CameraInfo, p["camera_info_topic"], self._on_camera_info, CAMERA_QOS)
+            self._inputs[p["camera_info_topic"]] = (CameraInfo, self._on_camera_info)
+        self._subscriptions_by_topic: dict[str, object] = {}
+        self._incompatible: set[str] = set()
+        for topic in self._inputs:
+            self._subscribe(topic)
         self.create_timer(1.0, self._publish_diagnostics)
+        self.create_timer(0.5, self._resubscribe_incompatible)
 
         self._stop = threading.Event()
         self._worker = threading.Thread(target=self._work, name="vlocnetpp-inference", daemon=True)
         self._worker.start()
         self.get_logger().info(f"localizer ready: {checkpoint} on {p['device']} (network input {w}x{h}), camera {image_topic}")
+
+    # ------------------------------------------------------------------ subscriptions
+
+    def _subscribe(self, topic: str) -> None:
+        """(Re)create the subscription of an input topic with reliability BEST_AVAILABLE.
+
+        BEST_AVAILABLE is resolved against the publishers present when the subscription is made
+        (none at start-up: reliable). A best-effort camera that starts later is reported as
+        incompatible; the subscription is then made again, which resolves to best effort.
+        """
+        old = self._subscriptions_by_topic.pop(topic, None)
+        if old is not None:
+            self.destroy_subscription(old)
+        msg_type, callback = self._inputs[topic]
+        events = SubscriptionEventCallbacks(incompatible_qos=lambda _status, topic=topic: self._incompatible.add(topic))
+        self._subscriptions_by_topic[topic] = self.create_subscription(msg_type, topic, callback, CAMERA_QOS, event_callbacks=events)
+
+    def _resubscribe_incompatible(self) -> None:
+        for topic in list(self._incompatible):
+            self._incompatible.discard(topic)
+            self.get_logger().info(f"a publisher on {topic} offers incompatible QoS (a best-effort camera started after this node?): "
+                                   "subscribing again so that BEST_AVAILABLE matches it")
+            self._subscribe(topic)
 
     # ------------------------------------------------------------------ callbacks (never block)
 
