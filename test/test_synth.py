@@ -204,3 +204,23 @@ def test_render_frame_refuses_poses_it_cannot_render(frames):
                         ([900.0, 60.0, 1.2], visit.q[0], "outside the rendered world")):
         with pytest.raises(ValueError, match=words):
             render_frame(campus, t, q, K)
+
+
+def test_the_camera_never_enters_an_object():
+    """Driving patterns keep the camera out of every static footprint and away from cars and pedestrians."""
+    campus = Campus("campus")
+    P = campus.prims
+    low = P.z0 < 1.6  # crowns and sign panels above the camera do not count
+    for seed in (0, 1):
+        for split, loop in (("train", 0), ("train", 1), ("train", 2), ("train", 3), ("test", 0)):
+            visit = plan_visit(campus, seed, split, loop, 120)
+            xy = visit.t[:, :2]
+            dx, dy = xy[:, None, 0] - P.cx[low], xy[:, None, 1] - P.cy[low]
+            lx = np.abs(dx * P.cos[low] + dy * P.sin[low]) - P.a[low]
+            ly = np.abs(-dx * P.sin[low] + dy * P.cos[low]) - P.b[low]
+            box_gap = np.hypot(np.maximum(lx, 0), np.maximum(ly, 0)) + np.minimum(np.maximum(lx, ly), 0)
+            gap = np.where(P.kind[low] == BOX, box_gap, np.hypot(dx, dy) - P.a[low])
+            assert gap.min() > 0.5, (seed, split, loop, gap.min())
+            for i in range(0, 120, 7):
+                for o in visit.objects_at(i):
+                    assert math.hypot(o.x - xy[i, 0], o.y - xy[i, 1]) > 1.0

@@ -24,14 +24,16 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from vlocnetpp_core.classes import CLASS_NAMES
 from vlocnetpp_core.data.synth import textures as tx
 from vlocnetpp_core.data.synth.ground import RES, GroundMap
 from vlocnetpp_core.data.synth.lighting import Lighting, sky_color
 from vlocnetpp_core.data.synth.prims import BOX, ELLIPSOID, Prims, PrimsBuilder
 from vlocnetpp_core.data.synth.route import rounded_rectangle
 
-# class ids (vlocnetpp_core.classes)
+# class ids, in the order of vlocnetpp_core.classes.CLASS_NAMES
 BACKGROUND, SKY, ROAD, SIDEWALK, GRASS, VEGETATION, BUILDING, POLE, DYNAMIC, OTHER = range(10)
+assert CLASS_NAMES[BUILDING] == "Building" and CLASS_NAMES[OTHER] == "Other" and len(CLASS_NAMES) == 10
 
 WIDTH_M, DEPTH_M = 100.0, 120.0  # campus extent (x, y)
 ROAD_HALF = 3.0  # road half-width
@@ -169,7 +171,7 @@ class Campus:
         """Distance (metres) from every ground cell to the nearest place the robot may drive."""
         g = self.ground
         corridor = np.zeros_like(g.labels)
-        for c in self.circuits.values():
+        for c in self.car_routes:  # the robot circuits and the whole ring (pedestrians use its sidewalks)
             g.polyline(corridor, c.points, 2 * (SIDEWALK_EDGE - 0.2), 1, closed=True)
         self.clearance = cv2.distanceTransform((corridor == 0).astype(np.uint8), cv2.DIST_L2, 5) * RES
         self._occupied = np.zeros_like(g.labels)

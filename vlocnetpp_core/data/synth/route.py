@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -15,7 +16,7 @@ class Route:
     name: str
     points: np.ndarray
 
-    @property
+    @functools.cached_property
     def arclength(self) -> np.ndarray:
         """Cumulative length ``(M + 1,)`` at each vertex, closing back to the start."""
         seg = np.linalg.norm(np.diff(np.vstack([self.points, self.points[:1]]), axis=0), axis=1)
