@@ -104,12 +104,15 @@ class Compose:
 
 @dataclasses.dataclass
 class Resize:
-    """Resize to exactly ``size (W, H)``."""
+    """Resize to exactly ``size (W, H)`` (the aspect follows ``size``), times a random factor in ``scale``."""
 
     size: tuple[int, int]
+    scale: tuple[float, float] = (1.0, 1.0)
 
     def __call__(self, clip: Clip, rng: np.random.Generator) -> Clip:
-        return [resize_frame(f, *self.size) for f in clip]
+        s = float(rng.uniform(*self.scale)) if self.scale[1] > self.scale[0] else self.scale[0]
+        w, h = (max(self.size[0], round(self.size[0] * s)), max(self.size[1], round(self.size[1] * s)))
+        return [resize_frame(f, w, h) for f in clip]
 
 
 @dataclasses.dataclass
@@ -196,16 +199,19 @@ def make_transform(
 ) -> Compose:
     """The standard pipeline to network input ``size (W, H)``.
 
-    Test: resize to cover ``size`` keeping the aspect, centre crop. Train: resize to cover ``size``
-    times a random factor in ``scale``, random crop, photometric jitter, and a horizontal flip
+    Test: resize the whole image to ``size`` (what the ``Localizer`` does with camera frames, so
+    evaluation, bag replay and the node see the same pixels; the aspect follows ``size``, which
+    for 16:9 cameras and the 16:9-ish input sizes of the configs is a distortion of a few percent
+    that the intrinsics absorb). Train: resize to ``size`` times a random factor in ``scale``,
+    random crop (the paper's random-crop training), photometric jitter, and a horizontal flip
     when ``flip`` (segmentation-only training: it breaks global poses).
     """
     size = (int(size[0]), int(size[1]))
     if not train:
-        return Compose([ResizeCover(size), CenterCrop(size)])
+        return Compose([Resize(size)])
     if not (1.0 <= scale[0] <= scale[1]) or not math.isfinite(scale[1]):
         raise ValueError(f"scale must be a range (lo, hi) with 1 <= lo <= hi, got {scale}")
-    ts = [ResizeCover(size, scale), RandomCrop(size), ColorJitter(brightness, contrast, saturation)]
+    ts = [Resize(size, scale), RandomCrop(size), ColorJitter(brightness, contrast, saturation)]
     if flip:
         ts.append(HorizontalFlip(0.5))
     return Compose(ts)
