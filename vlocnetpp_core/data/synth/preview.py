@@ -37,8 +37,7 @@ def mosaic(samples: list[tuple[str, np.ndarray, np.ndarray, np.ndarray]], tile_w
             cv2.resize(depth_color(depth), (tw, th), interpolation=cv2.INTER_NEAREST),
         ]
         row = np.concatenate(tiles, 1)
-        cv2.putText(row, caption, (6, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 3, cv2.LINE_AA)
-        cv2.putText(row, caption, (6, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1, cv2.LINE_AA)
+        _label(row, caption, (6, 16))
         rows.append(row)
     width = max(r.shape[1] for r in rows)
     rows = [np.pad(r, ((0, 2), (0, width - r.shape[1]), (0, 0))) for r in rows]
@@ -86,7 +85,14 @@ def top_down_map(campus: Campus, trajectories: list[tuple[str, str, np.ndarray]]
     for k, (text, color) in enumerate(legend):
         y = 22 + 20 * k
         cv2.rectangle(img, (10, y - 12), (26, y + 2), color, -1)
-        cv2.putText(img, text, (32, y), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 3, cv2.LINE_AA)
-        cv2.putText(img, text, (32, y), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
-    cv2.putText(img, f"{campus.scene}: N up, {s / 2:.2f} m/px", (10, img.shape[0] - 12), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
+        _label(img, text, (32, y))
+    _label(img, f"{campus.scene}: north up, {s / 2:.2f} m per pixel", (10, img.shape[0] - 12))
     return img
+
+
+def _label(img: np.ndarray, text: str, org: tuple[int, int], scale: float = 0.45) -> None:
+    """White text on a dark box at ``org`` (baseline left)."""
+    (w, h), base = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)
+    x, y = org
+    cv2.rectangle(img, (x - 3, y - h - 3), (x + w + 3, y + base), (20, 20, 20), -1)
+    cv2.putText(img, text, (x, y), cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 255), 1, cv2.LINE_AA)
