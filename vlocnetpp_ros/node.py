@@ -23,6 +23,7 @@ truncated data, NaN output, ...) is logged (throttled), counted and skipped; the
 
 from __future__ import annotations
 
+import gc
 import sys
 import threading
 import time
@@ -268,12 +269,20 @@ def main(args: list[str] | None = None) -> int:
     code = 0
     try:
         node = LocalizerNode()
+        # Everything loaded so far (torch, the model) lives until exit: keep it out of the garbage
+        # collector's scans. Fewer pauses while streaming, and exit after a signal takes ~0.2 s
+        # instead of ~1 s (finalisation otherwise walks every torch object).
+        gc.freeze()
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except (UserError, ParameterException, NameValidationException) as err:
         rclpy.logging.get_logger("localizer").error(f"cannot start: {err}")
         code = 1
+    except Exception:
+        if rclpy.ok():
+            raise
+        # SIGINT/SIGTERM while starting: rclpy shut the context down under the constructor
     finally:
         if node is not None:
             node.close()
