@@ -41,6 +41,7 @@ class LevelCamera:
         self.dx = self.a_u * s + c  # world direction of each column's ray per unit depth
         self.dy = -self.a_u * c + s
         self.n_u = np.sqrt(1.0 + self.a_u**2)  # horizontal distance per unit depth
+        self.dx32, self.dy32, self.n_u32 = (v.astype(np.float32) for v in (self.dx, self.dy, self.n_u))
         self.s_v = ((np.arange(height) - cy) / fy).astype(np.float32)  # downward slope per unit depth
         sigma = self.s_v[:, None] / self.n_u[None, :].astype(np.float32)
         sigma[sigma == 0] = 1e-9

@@ -17,6 +17,7 @@ Depth is the z coordinate in the camera (optical) frame, metres; the sky has dep
 
 from __future__ import annotations
 
+import functools
 import math
 
 import cv2
@@ -26,7 +27,7 @@ from vlocnetpp_core import geometry
 from vlocnetpp_core.data.synth.campus import HILLS_RADIUS, Campus, DynamicObject
 from vlocnetpp_core.data.synth.lighting import DEFAULT_LIGHTING, Lighting
 from vlocnetpp_core.data.synth.prims import CYLINDER, Prims
-from vlocnetpp_core.data.synth.raycast import E_OFFSET, GROUND, HILLS, SKY_CODE, LevelCamera, cast
+from vlocnetpp_core.data.synth.raycast import E_OFFSET, GROUND, HILLS, SKY_CODE, LevelCamera, LevelImage, cast
 from vlocnetpp_core.data.synth.shade import shade
 from vlocnetpp_core.intrinsics import Intrinsics
 
@@ -71,11 +72,8 @@ def render_frame(
         raise ValueError(f"camera at ({t[0]:.1f}, {t[1]:.1f}) is outside the rendered world (within {HILLS_RADIUS - 20:.0f} m of the campus)")
     W, H = intrinsics.width, intrinsics.height
     fx, fy, cx, cy = intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy
-    # rays of the output pixels, in the output camera (z = 1) and in the level camera
-    rx = ((np.arange(W) - cx) / fx).astype(np.float32)[None, :]
-    ry = ((np.arange(H) - cy) / fy).astype(np.float32)[:, None]
-    Rt32 = Rt.astype(np.float32)
-    dl = [Rt32[i, 0] * rx + Rt32[i, 1] * ry + Rt32[i, 2] for i in range(3)]  # (H, W) each
+    rays = _pixel_rays(W, H, fx, fy, cx, cy)  # (3, H*W) output pixel rays, z = 1
+    dl = Rt.astype(np.float32) @ rays  # the same rays in the level camera
     ul = fx * dl[0] / dl[2] + cx
     vl = fy * dl[1] / dl[2] + cy
     u0, u1 = int(math.floor(ul.min())) - 1, int(math.ceil(ul.max())) + 1
@@ -86,62 +84,67 @@ def render_frame(
         prims = Prims.concat([prims, campus.dynamic_prims(dynamic_objects)])
     out = cast(campus, prims, level)
     shade(campus, level, out, lighting)
-    map_x, map_y = ul - u0, vl - v0
+    map_x, map_y = (ul - u0).reshape(H, W), (vl - v0).reshape(H, W)
     rgb = cv2.remap(out.rgb, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    ci = np.clip(np.rint(map_x), 0, level.width - 1).astype(np.intp)
-    ri = np.clip(np.rint(map_y), 0, level.height - 1).astype(np.intp)
-    labels = out.labels[ri, ci]
-    depth = _exact_depth(campus, prims, out, level, R.astype(np.float32), rx, ry, ri, ci, dl[2])
-    return rgb, labels, depth
+    ci = np.clip(np.rint(ul - u0), 0, level.width - 1).astype(np.intp)
+    ri = np.clip(np.rint(vl - v0), 0, level.height - 1).astype(np.intp)
+    nearest = ri * level.width + ci  # flat index of each output pixel's nearest level pixel
+    labels = out.labels.ravel()[nearest].reshape(H, W)
+    depth = _exact_depth(campus, out, level, R.astype(np.float32) @ rays, nearest, dl[2])
+    return rgb, labels, depth.reshape(H, W)
 
 
-def _exact_depth(campus, prims, img, cam: LevelCamera, R, rx, ry, ri, ci, dz_level) -> np.ndarray:
-    """Depth along the optical axis of each output pixel's own ray, on the surface its label came from."""
-    codef = img.code[ri, ci]
-    fallback = img.zbuf[ri, ci] / dz_level  # nearest level depth, moved onto this ray
-    dwx = R[0, 0] * rx + R[0, 1] * ry + R[0, 2]
-    dwy = R[1, 0] * rx + R[1, 1] * ry + R[1, 2]
-    dwz = R[2, 0] * rx + R[2, 1] * ry + R[2, 2]
+@functools.lru_cache(maxsize=8)
+def _pixel_rays(W: int, H: int, fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
+    """``(3, H*W)`` float32 rays ``((u - cx) / fx, (v - cy) / fy, 1)`` of the pixels in row-major order."""
+    u, v = np.meshgrid((np.arange(W) - cx) / fx, (np.arange(H) - cy) / fy)
+    rays = np.stack([u.ravel(), v.ravel(), np.ones(W * H)]).astype(np.float32)
+    rays.setflags(write=False)
+    return rays
+
+
+def _exact_depth(campus: Campus, img: LevelImage, cam: LevelCamera, dw: np.ndarray, nearest: np.ndarray, dz_level: np.ndarray) -> np.ndarray:
+    """Depth ``(N,)`` along the optical axis of each output pixel's own ray, on the surface its label came from.
+
+    ``dw (3, N)``: world directions of the output rays (camera z = 1, so the ray parameter is the
+    depth); ``nearest (N,)``: flat index of the nearest level pixel; ``dz_level (N,)``: z of the
+    rays in the level camera (to move a level depth onto the output ray, the fallback).
+    """
+    code = img.code.ravel()[nearest]
+    fallback = img.zbuf.ravel()[nearest] / dz_level
+    depth = np.zeros(code.shape, np.float32)
     h = np.float32(cam.h)
-    depth = np.zeros(codef.shape, np.float32)
     with np.errstate(divide="ignore", invalid="ignore"):
-        np.divide(-h, dwz, out=depth, where=codef == GROUND)
-        m = codef == HILLS
-        if m.any():
+        np.divide(-h, dw[2], out=depth, where=code == GROUND)
+        m = np.nonzero(code == HILLS)[0]
+        if len(m):
             ox, oy = cam.x - campus.center[0], cam.y - campus.center[1]
-            A = dwx[m] ** 2 + dwy[m] ** 2
-            B = ox * dwx[m] + oy * dwy[m]
-            C = ox * ox + oy * oy - HILLS_RADIUS**2
-            depth[m] = (-B + np.sqrt(np.maximum(B * B - A * C, 0))) / A
+            dx, dy = dw[0, m], dw[1, m]
+            A, B = dx * dx + dy * dy, ox * dx + oy * dy
+            depth[m] = (-B + np.sqrt(np.maximum(B * B - A * (ox * ox + oy * oy - HILLS_RADIUS**2), 0))) / A
         P = img.slots.get("P")
-        m = (codef >= 0) & (codef < E_OFFSET)
-        if P and m.any():
-            s = codef[m]
-            capf = img.cap[ri, ci][m]
-            kind = P["kind"][s]
-            px, py = dwx[m], dwy[m]
-            t_plane = (P["off"][s] - (P["nx"][s] * cam.x + P["ny"][s] * cam.y)) / (P["nx"][s] * px + P["ny"][s] * py)
+        m = np.nonzero((code >= 0) & (code < E_OFFSET))[0]
+        if P and len(m):
+            s = code[m]
+            dx, dy, dz = dw[0, m], dw[1, m], dw[2, m]
+            nx, ny = P["nx"][s], P["ny"][s]
+            t_plane = (P["off"][s] - (nx * cam.x + ny * cam.y)) / (nx * dx + ny * dy)
             qx, qy = cam.x - P["cx"][s], cam.y - P["cy"][s]
-            A = px * px + py * py
-            B = qx * px + qy * py
-            C = qx * qx + qy * qy - P["a"][s] ** 2
-            t_cyl = (-B - np.sqrt(B * B - A * C)) / A
-            zp = np.where(dwz[m] < 0, P["z1"][s], P["z0"][s])
-            t_cap = (zp - cam.h) / dwz[m]
-            depth[m] = np.where(capf, t_cap, np.where(kind == CYLINDER, t_cyl, t_plane))
+            A, B = dx * dx + dy * dy, qx * dx + qy * dy
+            t_cyl = (-B - np.sqrt(B * B - A * (qx * qx + qy * qy - P["a"][s] ** 2))) / A
+            t_cap = (np.where(dz < 0, P["z1"][s], P["z0"][s]) - cam.h) / dz
+            depth[m] = np.where(img.cap.ravel()[nearest[m]], t_cap, np.where(P["kind"][s] == CYLINDER, t_cyl, t_plane))
         E = img.slots.get("E")
-        m = codef >= E_OFFSET
-        if E and m.any():
+        m = np.nonzero(code >= E_OFFSET)[0]
+        if E and len(m):
             pr = E["prims"]
-            p = E["pid"][codef[m] - E_OFFSET]
-            k = pr.a[p] / ((pr.z1[p] - pr.z0[p]) / 2)
+            p = E["pid"][code[m] - E_OFFSET]
+            k = pr.a[p] / ((pr.z1[p] - pr.z0[p]) / 2)  # scale z so that the crown is a sphere
             q = np.stack([cam.x - pr.cx[p], cam.y - pr.cy[p], (cam.h - (pr.z0[p] + pr.z1[p]) / 2) * k])
-            d = np.stack([dwx[m], dwy[m], dwz[m] * k])
-            A = (d * d).sum(0)
-            B = (q * d).sum(0)
-            C = (q * q).sum(0) - pr.a[p] ** 2
+            d = np.stack([dw[0, m], dw[1, m], dw[2, m] * k])
+            A, B, C = (d * d).sum(0), (q * d).sum(0), (q * q).sum(0) - pr.a[p] ** 2
             depth[m] = (-B - np.sqrt(B * B - A * C)) / A
         good = (depth > 0) & (np.abs(depth - fallback) <= 0.25 * fallback + 0.1)  # False for NaN
         depth = np.where(good, depth, fallback)
-    depth[(codef == SKY_CODE) | ~np.isfinite(depth)] = 0.0
+    depth[(code == SKY_CODE) | ~np.isfinite(depth)] = 0.0
     return depth.astype(np.float32, copy=False)

@@ -47,14 +47,10 @@ def _sample_atlas(campus: Campus, ax: np.ndarray, ay: np.ndarray, lod: np.ndarra
 
 def shade(campus: Campus, cam: LevelCamera, img: LevelImage, lt: Lighting) -> None:
     """Colour (``img.rgb``) and class (``img.labels``) of every level pixel from its surface code."""
-    n_u32 = cam.n_u.astype(np.float32)
     Hl, Wl = cam.height, cam.width
-    h = cam.h
-    zbuf, code = img.zbuf, img.code
     col = np.empty((Hl, Wl, 3), np.float32)
     labels = np.empty((Hl, Wl), np.uint8)
-    cap = np.zeros((Hl, Wl), bool)
-    sd = lt.sun_direction().astype(np.float32)
+    img.cap = np.zeros((Hl, Wl), bool)
     tint = np.asarray(lt.tint, np.float32)
     r0 = img.g_row0  # rows >= r0 look below the horizon: sky above, ground below; the rest overwrite
     if r0 > 0:
@@ -63,63 +59,85 @@ def shade(campus: Campus, cam: LevelCamera, img: LevelImage, lt: Lighting) -> No
         labels[:r0] = SKY
     if r0 < Hl:
         col[r0:], labels[r0:] = _ground(campus, cam, lt, r0, tint)
-    hil = code == HILLS
-    if hil.any():
-        ys, xs = np.nonzero(hil)
-        hgt = h - img.rho_h[xs] * cam.sigma[ys, xs]
-        tex = campus.hills_rgb
-        c = remap_points(tex, img.theta[xs] / (2 * math.pi) * tex.shape[1] - 0.5, (1 - hgt / HILLS_MAX_M) * tex.shape[0] - 0.5,
-                         cv2.BORDER_REPLICATE).astype(np.float32)
-        col[ys, xs] = c * (tint * np.float32((lt.ambient + 0.6 * lt.sun) / 255.0))
-        labels[ys, xs] = 0
+    for part in (_hills, _prisms, _crowns):
+        found = part(campus, cam, img, lt)
+        if found is not None:
+            ys, xs, c, lab = found
+            col[ys, xs] = c * tint
+            labels[ys, xs] = lab
+    img.rgb = _haze(cam, img, lt, col)
+    img.labels = labels
+
+
+def _hills(campus: Campus, cam: LevelCamera, img: LevelImage, lt: Lighting):
+    """``(rows, cols, colour (N, 3), class)`` of the pixels that see the distant hills, or None."""
+    ys, xs = np.nonzero(img.code == HILLS)
+    if len(ys) == 0:
+        return None
+    hgt = cam.h - img.rho_h[xs] * cam.sigma[ys, xs]
+    tex = campus.hills_rgb
+    c = remap_points(tex, img.theta[xs] / (2 * math.pi) * tex.shape[1] - 0.5, (1 - hgt / HILLS_MAX_M) * tex.shape[0] - 0.5,
+                     cv2.BORDER_REPLICATE).astype(np.float32)
+    return ys, xs, c * np.float32((lt.ambient + 0.6 * lt.sun) / 255.0), 0
+
+
+def _prisms(campus: Campus, cam: LevelCamera, img: LevelImage, lt: Lighting):
+    """Textured, lit sides and caps of boxes and cylinders (glass mixes in its reflection)."""
     P = img.slots.get("P")
-    if P:
-        ys, xs = np.nonzero((code >= 0) & (code < E_OFFSET))
-        s = code[ys, xs]
-        Z = zbuf[ys, xs]
-        is_cap = Z * n_u32[xs] > P["r1"][s] * np.float32(1 + 1e-4) + np.float32(1e-4)
-        cap[ys, xs] = is_cap
-        side_light = (lt.ambient + lt.sun * np.maximum(P["nx"] * sd[0] + P["ny"] * sd[1], 0.0)).astype(np.float32)  # per slot
-        down = cam.s_v[ys] > 0
-        light = np.where(is_cap, np.where(down, np.float32(lt.ambient + lt.sun * max(sd[2], 0.0)), np.float32(lt.ambient)), side_light[s])
-        ax = np.where(is_cap, P["cap_x"][s], P["ax"][s])
-        ay = np.where(is_cap, P["cap_y"][s], P["ay"][s] - (h - Z * cam.s_v[ys]) * np.float32(PPM))
-        tex = _sample_atlas(campus, ax, ay, np.log2(np.maximum(Z * np.float32(PPM / cam.fx), 1e-6)))
-        c = tex[:, :3] * light[:, None]
-        refl = np.where(is_cap, np.float32(0.0), tex[:, 3])
-        m = np.nonzero(refl > 0.02)[0]
-        if len(m):
-            r = refl[m, None]
-            c[m] = c[m] * (1 - r) + r * _reflection(campus, cam, lt, ys[m], xs[m], P["nx"][s[m]], P["ny"][s[m]])
-        col[ys, xs] = c * tint
-        labels[ys, xs] = P["label"][s]
+    if not P:
+        return None
+    ys, xs = np.nonzero((img.code >= 0) & (img.code < E_OFFSET))
+    s = img.code[ys, xs]
+    Z = img.zbuf[ys, xs]
+    sd = lt.sun_direction().astype(np.float32)
+    is_cap = Z * cam.n_u32[xs] > P["r1"][s] * np.float32(1 + 1e-4) + np.float32(1e-4)
+    img.cap[ys, xs] = is_cap
+    side_light = (lt.ambient + lt.sun * np.maximum(P["nx"] * sd[0] + P["ny"] * sd[1], 0.0)).astype(np.float32)  # per slot
+    down = cam.s_v[ys] > 0
+    light = np.where(is_cap, np.where(down, np.float32(lt.ambient + lt.sun * max(sd[2], 0.0)), np.float32(lt.ambient)), side_light[s])
+    ax = np.where(is_cap, P["cap_x"][s], P["ax"][s])
+    ay = np.where(is_cap, P["cap_y"][s], P["ay"][s] - (cam.h - Z * cam.s_v[ys]) * np.float32(PPM))
+    tex = _sample_atlas(campus, ax, ay, np.log2(np.maximum(Z * np.float32(PPM / cam.fx), 1e-6)))
+    c = tex[:, :3] * light[:, None]
+    refl = np.where(is_cap, np.float32(0.0), tex[:, 3])
+    m = np.nonzero(refl > 0.02)[0]
+    if len(m):
+        r = refl[m, None]
+        c[m] = c[m] * (1 - r) + r * _reflection(campus, cam, lt, ys[m], xs[m], P["nx"][s[m]], P["ny"][s[m]])
+    return ys, xs, c, P["label"][s]
+
+
+def _crowns(campus: Campus, cam: LevelCamera, img: LevelImage, lt: Lighting):
+    """Textured, lit tree crowns (ellipsoids)."""
     E = img.slots.get("E")
-    if E:
-        ys, xs = np.nonzero(code >= E_OFFSET)
-        pr = E["prims"]
-        p = E["pid"][code[ys, xs] - E_OFFSET]
-        Z = zbuf[ys, xs]
-        X = cam.x + Z * cam.dx[xs] - pr.cx[p]
-        Y = cam.y + Z * cam.dy[xs] - pr.cy[p]
-        zz = h - Z * cam.s_v[ys]
-        bv = (pr.z1[p] - pr.z0[p]) / 2
-        az = np.mod(np.arctan2(Y, X), 2 * math.pi)
-        ax = pr.tx[p] + az / (2 * math.pi) * pr.tw[p] * PPM - 0.5
-        ay = pr.ty[p] + np.clip((pr.z1[p] - zz) / (2 * bv), 0, 1) * pr.th[p] * PPM - 0.5
-        tex = _sample_atlas(campus, ax, ay, np.log2(np.maximum(Z * PPM / cam.fx, 1e-6)))
-        a2 = pr.a[p] ** 2
-        nx, ny, nz = X / a2, Y / a2, (zz - pr.z0[p] - bv) / bv**2
-        lam = np.maximum((nx * sd[0] + ny * sd[1] + nz * sd[2]) / np.sqrt(nx * nx + ny * ny + nz * nz), 0.0)
-        col[ys, xs] = tex[:, :3] * (lt.ambient + lt.sun * lam).astype(np.float32)[:, None] * tint
-        labels[ys, xs] = pr.label[p]
-    # haze: c = c * f + horizon * (1 - f) with f = exp(-distance / haze); the sky keeps f = 1
-    f = np.exp(np.where(code != SKY_CODE, zbuf, np.float32(0.0)) * (n_u32 / np.float32(-lt.haze_m))[None, :])
+    if not E:
+        return None
+    ys, xs = np.nonzero(img.code >= E_OFFSET)
+    pr = E["prims"]
+    p = E["pid"][img.code[ys, xs] - E_OFFSET]
+    Z = img.zbuf[ys, xs]
+    sd = lt.sun_direction().astype(np.float32)
+    X = (cam.x - pr.cx[p]).astype(np.float32) + Z * cam.dx32[xs]  # hit point relative to the crown centre
+    Y = (cam.y - pr.cy[p]).astype(np.float32) + Z * cam.dy32[xs]
+    zc, bv, a = ((pr.z0 + pr.z1) / 2)[p].astype(np.float32), ((pr.z1 - pr.z0) / 2)[p].astype(np.float32), pr.a[p].astype(np.float32)
+    dz = (cam.h - zc) - Z * cam.s_v[ys]
+    az = np.arctan2(Y, X) * np.float32(1 / (2 * math.pi))
+    az += az < 0
+    ax = pr.tx[p] + az * pr.tw[p] * PPM - 0.5
+    ay = pr.ty[p] + np.clip((bv - dz) / (2 * bv), 0, 1) * pr.th[p] * PPM - 0.5
+    tex = _sample_atlas(campus, ax, ay, np.log2(np.maximum(Z * np.float32(PPM / cam.fx), 1e-6)))
+    a2 = a * a
+    nx, ny, nz = X / a2, Y / a2, dz / (bv * bv)
+    lam = np.maximum((nx * sd[0] + ny * sd[1] + nz * sd[2]) / np.sqrt(nx * nx + ny * ny + nz * nz), 0.0)
+    return ys, xs, tex[:, :3] * (lt.ambient + lt.sun * lam)[:, None], pr.label[p]
+
+
+def _haze(cam: LevelCamera, img: LevelImage, lt: Lighting, col: np.ndarray) -> np.ndarray:
+    """``uint8`` RGB of ``col * f + horizon * (1 - f)``, ``f = exp(-distance / haze)``; the sky keeps f = 1."""
+    f = np.exp(np.where(img.code != SKY_CODE, img.zbuf, np.float32(0.0)) * (cam.n_u32 / np.float32(-lt.haze_m))[None, :])
     hor = np.empty_like(col)
     hor[:] = np.asarray(lt.sky_horizon, np.float32)
-    col = cv2.blendLinear(col, hor, f, np.float32(1.0) - f)
-    img.rgb = cv2.convertScaleAbs(col, alpha=255.0)
-    img.labels = labels
-    img.cap = cap
+    return cv2.convertScaleAbs(cv2.blendLinear(col, hor, f, np.float32(1.0) - f), alpha=255.0)
 
 
 def _ground(campus: Campus, cam: LevelCamera, lt: Lighting, r0: int, tint: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
