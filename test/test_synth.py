@@ -112,7 +112,7 @@ def test_existing_output_is_refused_unless_forced(small, tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["exists"]  # no temporary folders left
 
 
-@pytest.mark.parametrize("bad", [dict(size=(8, 8)), dict(frames_per_loop=0), dict(train_loops=0, test_loops=0), dict(seed=-1)])
+@pytest.mark.parametrize("bad", [dict(size=(8, 8)), dict(frames_per_loop=0), dict(train_loops=0, test_loops=0), dict(seed=-1), dict(scene="two\nlines")])
 def test_bad_arguments_are_user_errors(tmp_path, bad):
     args = dict(SMALL, **bad)
     with pytest.raises(UserError):

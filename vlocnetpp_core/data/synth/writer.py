@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import tempfile
 import time
@@ -54,8 +55,8 @@ def format_pose(name: str, t: np.ndarray, q: np.ndarray) -> str:
 
 
 def _check_args(scene: str, seed: int, train_loops: int, test_loops: int, frames_per_loop: int, size, frame_interval) -> tuple[int, int]:
-    if not isinstance(scene, str) or not scene.strip():
-        raise UserError("--scene must be a non-empty name")
+    if not isinstance(scene, str) or not re.fullmatch(r"[A-Za-z0-9_.-]{1,64}", scene):
+        raise UserError(f"--scene must be a name of letters, digits, '_', '.', '-' (at most 64), got {scene!r}")
     if int(seed) < 0:
         raise UserError(f"--seed must be >= 0, got {seed}")
     if train_loops < 0 or test_loops < 0 or train_loops + test_loops == 0:
@@ -106,7 +107,12 @@ def render_dataset(
         if out.exists():
             old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
             os.replace(out, old / "data")
-            os.replace(tmp, out)
+            try:
+                os.replace(tmp, out)
+            except BaseException:
+                os.replace(old / "data", out)  # put the previous dataset back
+                old.rmdir()
+                raise
             shutil.rmtree(old, ignore_errors=True)
         else:
             os.replace(tmp, out)
