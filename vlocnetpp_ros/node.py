@@ -54,6 +54,7 @@ PACKAGE = "vlocnetpp_ros"
 DEFAULT_MODEL = "models/vlocnetpp_lite.safetensors"  # relative to the package share folder
 CAMERA_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5, reliability=ReliabilityPolicy.BEST_AVAILABLE)
 DEPTH_MATCH_FRAMES = 8  # depth images kept for matching colour stamps
+DEPTH_WAIT_S = 0.05  # how long a colour frame waits for its depth image (in the worker)
 
 # name -> (default, description); every one is in config/localizer.yaml.
 PARAMETERS: dict[str, tuple[object, str]] = {
@@ -122,7 +123,7 @@ class LocalizerNode(Node):
         self._mailbox = LatestMailbox()
         self._intrinsics = None
         self._depths: deque[Image] = deque(maxlen=DEPTH_MATCH_FRAMES)
-        self._depth_lock = threading.Lock()
+        self._depth_arrived = threading.Condition()
 
         self.pose_pub = self.create_publisher(PoseStamped, "vlocnet/pose", 10)
         self.odom_pub = self.create_publisher(Odometry, "vlocnet/odometry", 10)
@@ -176,8 +177,9 @@ class LocalizerNode(Node):
         self.stats.arrived(now, self._mailbox.put((msg, now)))
 
     def _on_depth(self, msg: Image) -> None:
-        with self._depth_lock:
+        with self._depth_arrived:
             self._depths.append(msg)
+            self._depth_arrived.notify_all()
 
     def _on_camera_info(self, msg: CameraInfo) -> None:
         try:
@@ -227,11 +229,16 @@ class LocalizerNode(Node):
         self.stats.processed_frame(now, now - arrival, result.reset_reason)
 
     def _matching_depth(self, stamp):
-        """Depth (metres) with exactly this stamp, or None (then the predicted depth is used)."""
+        """Depth (metres) with exactly this stamp, waiting up to ``DEPTH_WAIT_S`` for it; None: use the predicted depth."""
         if not self.params["depth_topic"]:
             return None
-        with self._depth_lock:
-            match = next((d for d in reversed(self._depths) if d.header.stamp == stamp), None)
+
+        def find():
+            return next((d for d in reversed(self._depths) if d.header.stamp == stamp), None)
+
+        with self._depth_arrived:
+            self._depth_arrived.wait_for(lambda: find() is not None, DEPTH_WAIT_S)
+            match = find()
         if match is None:
             self._ignore(FrameError("depth_missing", "no depth image with the colour image's stamp; using the predicted depth"))
             return None
