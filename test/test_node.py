@@ -14,6 +14,8 @@ import numpy as np
 import pytest
 import rclpy
 import torch
+import yaml
+from conftest import REPO
 from node_fixtures import Harness, camera_frames, diagnostic_values, domain_id, image_msg, wait_until
 from rclpy.parameter import Parameter
 from rclpy.qos import qos_profile_sensor_data
@@ -25,7 +27,8 @@ from vlocnetpp_core.errors import UserError
 from vlocnetpp_core.intrinsics import Intrinsics
 from vlocnetpp_core.localizer import Localizer
 from vlocnetpp_ros import conversions
-from vlocnetpp_ros.node import LocalizerNode, default_checkpoint
+from vlocnetpp_ros.diagnostics import ThrottledLog
+from vlocnetpp_ros.node import PARAMETERS, LocalizerNode, default_checkpoint
 
 DOMAIN = domain_id(20)
 CAMERA = "/camera/image_raw"
@@ -266,11 +269,15 @@ def test_a_best_effort_camera_started_after_the_node_is_received(make_node):
 
 
 def test_start_up_errors_are_user_errors(checkpoint: Path, tmp_path: Path, monkeypatch):
+    corrupt = tmp_path / "corrupt.safetensors"
+    corrupt.write_bytes(checkpoint.read_bytes()[:1000])
+    (tmp_path / "corrupt.json").write_text(checkpoint.with_suffix(".json").read_text())
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=DOMAIN)
     try:
         cases = [
             ({"checkpoint": str(tmp_path / "missing.safetensors")}, "no such checkpoint"),
+            ({"checkpoint": str(corrupt)}, "not a readable safetensors file"),
             ({"checkpoint": str(checkpoint), "max_gap_s": -1.0}, "max_gap_s must be > 0"),
             ({"checkpoint": str(checkpoint), "device": "tpu"}, "device must be"),
             ({"checkpoint": str(checkpoint), "num_threads": -2}, "num_threads must be >= 0"),
@@ -289,3 +296,18 @@ def test_start_up_errors_are_user_errors(checkpoint: Path, tmp_path: Path, monke
     model.write_bytes(b"")
     monkeypatch.setenv("AMENT_PREFIX_PATH", f"{tmp_path / 'prefix'}{os.pathsep}{os.environ.get('AMENT_PREFIX_PATH', '')}")
     assert default_checkpoint() == model
+
+
+def test_the_params_file_sets_every_declared_parameter_to_its_default():
+    data = yaml.safe_load((REPO / "config" / "localizer.yaml").read_text())
+    params = data["/**"]["ros__parameters"]
+    assert params == {name: default for name, (default, _) in PARAMETERS.items()}
+
+
+def test_throttled_log_says_how_many_lines_it_held_back():
+    lines: list[str] = []
+    log = ThrottledLog(lines.append, period_s=5.0)
+    assert log("a", "first", now=0.0) and not log("a", "again", now=1.0) and not log("a", "again", now=4.9)
+    assert log("b", "other reason", now=2.0)  # throttled per key
+    assert log("a", "later", now=5.1)
+    assert lines == ["first", "other reason", "later (2 more like this in the last 5 s)"]
