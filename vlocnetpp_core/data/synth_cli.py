@@ -19,12 +19,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from vlocnetpp_core.data.synth.writer import DEFAULT_FRAMES_PER_LOOP
 
     parser.add_argument("out", metavar="OUT", help="output folder (must not exist unless --force)")
-    parser.add_argument("--scene", default="campus", help="campus to build: fixes geometry and textures (default: campus, the one the shipped model knows)")
-    parser.add_argument("--seed", type=int, default=0, help="varies the visits: driving patterns, lighting, moving objects (default: 0)")
-    parser.add_argument("--loops", type=int, default=4, help="train loops (default: 4; with 4 or more every circuit/direction is covered)")
-    parser.add_argument("--test-loops", type=int, default=2, help="test loops (default: 2)")
-    parser.add_argument("--frames-per-loop", type=int, default=DEFAULT_FRAMES_PER_LOOP, help=f"frames per loop (default: {DEFAULT_FRAMES_PER_LOOP})")
-    parser.add_argument("--size", type=_size, default=(320, 180), help="image size WIDTHxHEIGHT (default: 320x180)")
+    parser.add_argument("--scene", default="campus", metavar="S", help="campus to build: fixes geometry and textures (default: campus, the one the shipped model knows)")
+    parser.add_argument("--seed", type=int, default=0, metavar="S", help="varies the visits: driving patterns, lighting, moving objects (default: 0)")
+    parser.add_argument("--loops", type=int, default=4, metavar="N", help="train loops (default: 4; with 4 or more every circuit/direction is covered)")
+    parser.add_argument("--test-loops", type=int, default=2, metavar="N", help="test loops (default: 2)")
+    parser.add_argument("--frames-per-loop", type=int, default=DEFAULT_FRAMES_PER_LOOP, metavar="N", help=f"frames per loop (default: {DEFAULT_FRAMES_PER_LOOP})")
+    parser.add_argument("--size", type=_size, default=(320, 180), metavar="WxH", help="image size WIDTHxHEIGHT (default: 320x180)")
     parser.add_argument("--frame-interval", type=float, default=None, metavar="SECONDS",
                         help="time between frames, e.g. 0.05 for 20 Hz video (default: spread each loop's frames over one lap, ~1 m apart)")
     parser.add_argument("--force", action="store_true", help="replace OUT if it exists")
