@@ -32,16 +32,23 @@ def remap_points(src: np.ndarray, x: np.ndarray, y: np.ndarray, border: int) -> 
 
 
 def _sample_atlas(campus: Campus, ax: np.ndarray, ay: np.ndarray, lod: np.ndarray) -> np.ndarray:
-    """Bilinear, mip-blended atlas RGBA (N, 4) float32 in [0, 1] at level-0 texel coords."""
-    out = np.zeros((len(ax), 4), np.float32)
-    lod = np.clip(lod, 0, LEVELS - 1)
-    for L in range(LEVELS):
-        w = np.clip(1.0 - np.abs(lod - L), 0.0, 1.0)
-        if not (w > 0).any():
+    """Bilinear, mip-blended atlas RGBA (N, 4) float32 in [0, 1] at level-0 texel coords.
+
+    Each point blends the two levels around its level of detail ``lod`` (log2 texels per pixel).
+    """
+    out = np.empty((len(ax), 4), np.float32)
+    lod = np.clip(lod, 0, LEVELS - 1 - 1e-6).astype(np.float32)
+    base = lod.astype(np.int64)  # floor
+    frac = (lod - base)[:, None] * np.float32(1 / 255)
+    for L in range(LEVELS - 1):
+        idx = np.nonzero(base == L)[0]
+        if len(idx) == 0:
             continue
-        s = 2.0**L
-        smp = remap_points(campus.atlas[L], (ax + 0.5) / s - 0.5, (ay + 0.5) / s - 0.5, cv2.BORDER_REPLICATE)
-        out += smp.astype(np.float32) * (w / 255.0)[:, None]
+        x, y, f = ax[idx], ay[idx], frac[idx]
+        lo = remap_points(campus.atlas[L], (x + 0.5) / 2.0**L - 0.5, (y + 0.5) / 2.0**L - 0.5, cv2.BORDER_REPLICATE)
+        hi = remap_points(campus.atlas[L + 1], (x + 0.5) / 2.0 ** (L + 1) - 0.5, (y + 0.5) / 2.0 ** (L + 1) - 0.5, cv2.BORDER_REPLICATE)
+        lo = lo.astype(np.float32)
+        out[idx] = lo * np.float32(1 / 255) + (hi.astype(np.float32) - lo) * f
     return out
 
 
