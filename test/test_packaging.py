@@ -9,8 +9,8 @@ import sys
 from pathlib import Path
 
 import pytest
-
 from conftest import REPO, install_env
+
 from vlocnetpp_core.cli import COMMANDS
 
 

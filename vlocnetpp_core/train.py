@@ -146,6 +146,7 @@ def _load_inits(model, criterion, paths: list[str], stage: str, log) -> list[dic
     from vlocnetpp_core.train_state import load_criterion_weights
 
     sources = []
+    loaded: dict[str, torch.Tensor] = {}
     for path in paths:
         tensors, meta = read_checkpoint_tensors(path)
         src_stage = meta.get("training", {}).get("stage")
@@ -159,12 +160,32 @@ def _load_inits(model, criterion, paths: list[str], stage: str, log) -> list[dic
         if bad:
             raise UserError(f"{path}: {len(bad)} tensors do not match this model config (e.g. {bad[0]}); was it trained with another --config?")
         model.load_state_dict({k: v.to(own[k].dtype) for k, v in keep.items()}, strict=False)
+        loaded.update(keep)
         crit = load_criterion_weights(Path(path).parent)
         if crit:
             own_c = criterion.state_dict()
             criterion.load_state_dict({**own_c, **{k: v for k, v in crit.items() if k in own_c}})
         log(f"init: {len(keep)} tensors from {path} (stage {src_stage})")
+    fusion = getattr(model, "semantic_fusion", None)
+    if fusion is not None and not any(k.startswith("semantic_fusion.") for k in loaded):
+        _passthrough_init(fusion)
+        log("init: semantic fusion (Res4c) starts as a pass-through of the global stream")
     return sources
+
+
+@torch.no_grad()
+def _passthrough_init(fusion) -> None:
+    """Start a fusion added to trained streams close to its first input: ``ReLU(z_a + small * z_b)``.
+
+    The semantic weights are small but non-zero so that both the 1x1 pooling and the per-channel
+    weights receive gradients from the first step (an all-zero branch would never learn).
+    """
+    w = fusion.pool.weight  # (C_a, C_a + C_b, 1, 1)
+    ca = fusion.weight_a.numel()
+    w.zero_()
+    w[:, :ca, 0, 0] = torch.eye(ca, dtype=w.dtype)
+    w[:, ca:].normal_(0.0, 0.01 / math.sqrt(w.shape[1] - ca))
+    fusion.pool.bias.zero_()
 
 
 # --------------------------------------------------------------------------- the loop
@@ -223,7 +244,13 @@ def run(args: argparse.Namespace) -> int:
         from vlocnetpp_core.model import load_backbone_weights
 
         log(f"init-backbone: {load_backbone_weights(model, args.init_backbone)}")
-    params = list(trainable_parameters(model, args.stage)) + list(criterion.parameters())
+    params = list(trainable_parameters(model, args.stage))
+    if args.stage == "stl-vo" and args.init:
+        # Odometry on top of an stl-loc trunk: keep the shared trunk as the global stream learned it,
+        # so that mtl can take the trunk from stl-loc and the odometry stream from stl-vo consistently.
+        trunk = {id(p) for n, p in model.named_parameters() if n.startswith("trunk.")}
+        params = [p for p in params if id(p) not in trunk]
+    params += list(criterion.parameters())
     for p in model.parameters():
         p.requires_grad_(False)
     for p in params:
@@ -290,7 +317,7 @@ def run(args: argparse.Namespace) -> int:
                 optimizer.step()
                 step += 1
                 dt = time.perf_counter() - t0
-                rec = {"step": step, "epoch": epoch, "lr": optimizer.param_groups[0]["lr"], "loss": float(loss),
+                rec = {"step": step, "epoch": epoch, "lr": optimizer.param_groups[0]["lr"], "loss": float(loss.detach()),
                        **{k: float(v) for k, v in parts.items()}, "clips_per_s": args.batch_size / dt}
                 logf.write(json.dumps(rec) + "\n")
                 if progress is not None:
@@ -362,6 +389,7 @@ def validate(model, criterion, clips, stage: str, device) -> tuple[dict, dict]:
         "pose_variance": _variance(pose_err),
         "odometry_variance": _variance(odo_err),
         "frames": int(sum(len(e) for e in pose_err)),
+        "source": f"validation ({stage}, {len(clips)} clips)",
         "note": "per-axis variance of validation errors: x, y, z (m^2), rotation about x, y, z (rad^2); odometry per frame",
     }
     return metrics, calib

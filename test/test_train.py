@@ -1,0 +1,151 @@
+"""`vlocnetpp train`: real optimisation per stage, mtl from stage checkpoints, exact resume, torchrun."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from conftest import REPO
+
+from vlocnetpp_core.checkpoint import load_checkpoint
+from vlocnetpp_core.cli import main as cli
+from vlocnetpp_core.data.synth import render_dataset
+from vlocnetpp_core.model import load_model_config
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory) -> tuple[Path, Path]:
+    """A 3-loop synthetic campus at 64x48 and a lite config at that input size."""
+    root = tmp_path_factory.mktemp("train")
+    data = root / "campus"
+    render_dataset(data, seed=0, train_loops=3, test_loops=1, frames_per_loop=10, size=(64, 48), progress=False)
+    cfg = load_model_config("lite").to_dict()
+    cfg["input_size"] = [64, 48]
+    config = root / "tiny.yaml"
+    config.write_text(yaml.safe_dump(cfg))
+    return data, config
+
+
+def train(data: Path, config: Path, out: Path, stage: str, steps: int, *extra: str) -> list[dict]:
+    args = ["train", "--config", str(config), "--data", str(data), "--stage", stage, "--out", str(out), "--steps", str(steps),
+            "--batch-size", "2", "--clip-len", "2", "--workers", "0", "--no-progress", "--val-every", str(steps), *extra]
+    assert cli(args) == 0
+    return read_log(out)
+
+
+def read_log(out: Path) -> list[dict]:
+    return [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
+
+
+def steps_of(log: list[dict]) -> list[dict]:
+    return [r for r in log if "validation" not in r]
+
+
+def early_late(log: list[dict], key: str, n: int = 15) -> tuple[float, float]:
+    values = [r[key] for r in steps_of(log) if key in r]
+    return float(np.mean(values[:n])), float(np.mean(values[-n:]))
+
+
+STAGE_KEYS = {"stl-loc": "x", "stl-vo": "x_vo", "stl-seg": "seg"}
+
+
+@pytest.fixture(scope="module")
+def stage_runs(tiny, tmp_path_factory) -> dict[str, Path]:
+    data, config = tiny
+    root = tmp_path_factory.mktemp("stages")
+    runs = {}
+    for stage in ("stl-loc", "stl-seg"):
+        runs[stage] = root / stage
+        train(data, config, runs[stage], stage, 150)
+    runs["stl-vo"] = root / "stl-vo"
+    train(data, config, runs["stl-vo"], "stl-vo", 150, "--init", str(runs["stl-loc"] / "last.safetensors"))
+    return runs
+
+
+@pytest.mark.parametrize("stage", list(STAGE_KEYS))
+def test_each_stage_lowers_its_loss(stage_runs, stage):
+    early, late = early_late(read_log(stage_runs[stage]), STAGE_KEYS[stage])
+    assert late < 0.6 * early, f"{stage}: {STAGE_KEYS[stage]} went {early:.3f} -> {late:.3f}"
+
+
+def test_stage_checkpoints_have_sidecar_and_calibration(stage_runs):
+    for stage, run in stage_runs.items():
+        model, meta = load_checkpoint(run / "best.safetensors")
+        assert meta["training"]["stage"] == stage
+        assert meta["input_size"] == [64, 48]
+        assert len(meta["calibration"]["pose_variance"]) == 6
+    meta = load_checkpoint(stage_runs["stl-vo"] / "last")[1]
+    from vlocnetpp_core.checkpoint import DEFAULT_ODOMETRY_VARIANCE
+
+    assert meta["calibration"]["source"].startswith("validation")
+    assert all(v > 0 for v in meta["calibration"]["odometry_variance"])
+    assert meta["calibration"]["odometry_variance"] != list(DEFAULT_ODOMETRY_VARIANCE)
+
+
+def test_mtl_from_stage_checkpoints_starts_at_their_losses(tiny, stage_runs, tmp_path):
+    data, config = tiny
+    inits = [a for stage in ("stl-loc", "stl-vo", "stl-seg") for a in ("--init", str(stage_runs[stage] / "last.safetensors"))]
+    mtl = steps_of(train(data, config, tmp_path / "mtl", "mtl", 8, *inits))
+    fresh = steps_of(train(data, config, tmp_path / "fresh", "mtl", 8))
+    for stage, key in STAGE_KEYS.items():
+        stage_late = early_late(read_log(stage_runs[stage]), key)[1]
+        start = float(np.mean([r[key] for r in mtl]))
+        untrained = float(np.mean([r[key] for r in fresh]))
+        assert start < 2.0 * stage_late + 0.05, f"{key}: mtl starts at {start:.3f}, stage ended at {stage_late:.3f}"
+        assert start < 0.7 * untrained, f"{key}: mtl starts at {start:.3f}, untrained {untrained:.3f}"
+
+
+def _train_cmd(data: Path, config: Path, out: Path, steps: int) -> list[str]:
+    return [sys.executable, "-m", "vlocnetpp_core.train", "--config", str(config), "--data", str(data), "--stage", "mtl",
+            "--out", str(out), "--steps", str(steps), "--batch-size", "2", "--clip-len", "2", "--workers", "0",
+            "--no-progress", "--val-every", "4", "--seed", "3"]
+
+
+def test_killed_run_resumes_exactly(tiny, tmp_path):
+    data, config = tiny
+    steps = 12
+    straight = tmp_path / "straight"
+    subprocess.run(_train_cmd(data, config, straight, steps), check=True, capture_output=True, cwd=REPO, timeout=600)
+    reference = {r["step"]: r for r in steps_of(read_log(straight))}
+
+    killed = tmp_path / "killed"
+    proc = subprocess.Popen(_train_cmd(data, config, killed, 40), cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 300
+    while time.monotonic() < deadline:
+        log = killed / "log.jsonl"
+        if log.exists() and any(r.get("step", 0) >= 6 and "validation" not in r for r in read_log(killed)):
+            break
+        time.sleep(0.2)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    saved = json.loads((killed / "train_state.json").read_text())["step"]
+    assert saved in (4, 8)
+    subprocess.run([*_train_cmd(data, config, killed, steps), "--resume"], check=True, capture_output=True, cwd=REPO, timeout=600)
+    resumed = [r for r in steps_of(read_log(killed))]
+    after = {r["step"]: r for r in resumed[len(resumed) - (steps - saved):]}
+    assert sorted(after) == list(range(saved + 1, steps + 1))
+    for step, rec in after.items():
+        for key in ("loss", "x", "x_vo", "seg"):
+            assert rec[key] == pytest.approx(reference[step][key], rel=1e-6, abs=1e-7), (step, key)
+
+
+def test_torchrun_two_processes_gloo(tiny, tmp_path):
+    data, config = tiny
+    out = tmp_path / "ddp"
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2", "-m", "vlocnetpp_core.train",
+           "--config", str(config), "--data", str(data), "--stage", "stl-seg", "--out", str(out), "--steps", "3",
+           "--batch-size", "2", "--clip-len", "2", "--workers", "0", "--no-progress", "--device", "cpu"]
+    proc = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    model, meta = load_checkpoint(out / "last.safetensors")
+    assert meta["training"]["world_size"] == 2 and meta["training"]["step"] == 3
+    assert len([r for r in steps_of(read_log(out))]) == 3  # rank 0 alone writes the log
