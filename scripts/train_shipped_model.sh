@@ -1,0 +1,40 @@
+#!/usr/bin/env bash
+# Reproduces the model shipped in models/ (vlocnetpp_lite.*): synthetic campus data, the paper's
+# staged schedule (single-task stages, then multitask), then an fp16 copy for the package.
+# Usage: bash scripts/train_shipped_model.sh [RUN_DIR]   (default runs/shipped; resumable: re-run to continue)
+# Times per stage on the 2-core development machine are in docs/training.md.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+RUN=${1:-runs/shipped}
+V=.venv/bin/vlocnetpp
+mkdir -p "$RUN"
+stamp() { date +%s; }
+log() { echo "[$(date +%H:%M:%S)] $*" | tee -a "$RUN/timings.txt"; }
+resume_flag() { [ -f "$1/train_state.json" ] && echo --resume || true; }
+
+DATA="$RUN/campus"
+if [ ! -d "$DATA" ]; then
+  t=$(stamp); $V synth "$DATA" --scene campus --seed 0 --loops 8 --test-loops 1 --frames-per-loop 250 --no-progress
+  log "synth: $(( $(stamp) - t )) s"
+fi
+COMMON=(--config lite --data "$DATA" --batch-size 8 --clip-len 3 --workers 1 --no-progress --val-every 250)
+
+# stl-loc and stl-seg are independent: run them side by side, one thread each.
+t=$(stamp)
+$V train "${COMMON[@]}" --stage stl-loc --out "$RUN/stl-loc" --steps "${LOC_STEPS:-2400}" --threads 1 $(resume_flag "$RUN/stl-loc") > "$RUN/stl-loc.out" 2>&1 &
+p1=$!
+$V train "${COMMON[@]}" --stage stl-seg --out "$RUN/stl-seg" --steps "${SEG_STEPS:-1500}" --threads 1 $(resume_flag "$RUN/stl-seg") > "$RUN/stl-seg.out" 2>&1 &
+p2=$!
+wait $p1; wait $p2
+log "stl-loc + stl-seg (in parallel): $(( $(stamp) - t )) s"
+
+t=$(stamp)
+$V train "${COMMON[@]}" --stage stl-vo --out "$RUN/stl-vo" --steps "${VO_STEPS:-1200}" --threads 2 \
+  --init "$RUN/stl-loc/best.safetensors" $(resume_flag "$RUN/stl-vo") > "$RUN/stl-vo.out" 2>&1
+log "stl-vo: $(( $(stamp) - t )) s"
+
+t=$(stamp)
+$V train "${COMMON[@]}" --stage mtl --out "$RUN/mtl" --steps "${MTL_STEPS:-1500}" --threads 2 \
+  --init "$RUN/stl-loc/best.safetensors" --init "$RUN/stl-vo/best.safetensors" --init "$RUN/stl-seg/best.safetensors" \
+  $(resume_flag "$RUN/mtl") > "$RUN/mtl.out" 2>&1
+log "mtl: $(( $(stamp) - t )) s"
