@@ -98,12 +98,16 @@ def _prisms(campus: Campus, cam: LevelCamera, img: LevelImage, lt: Lighting):
     Z = img.zbuf[ys, xs]
     sd = lt.sun_direction().astype(np.float32)
     is_cap = Z * cam.n_u32[xs] > P["r1"][s] * np.float32(1 + 1e-4) + np.float32(1e-4)
-    img.cap[ys, xs] = is_cap
     side_light = (lt.ambient + lt.sun * np.maximum(P["nx"] * sd[0] + P["ny"] * sd[1], 0.0)).astype(np.float32)  # per slot
-    down = cam.s_v[ys] > 0
-    light = np.where(is_cap, np.where(down, np.float32(lt.ambient + lt.sun * max(sd[2], 0.0)), np.float32(lt.ambient)), side_light[s])
-    ax = np.where(is_cap, P["cap_x"][s], P["ax"][s])
-    ay = np.where(is_cap, P["cap_y"][s], P["ay"][s] - (cam.h - Z * cam.s_v[ys]) * np.float32(PPM))
+    light = side_light[s]
+    ax = P["ax"][s]
+    ay = P["ay"][s] - (cam.h - Z * cam.s_v[ys]) * np.float32(PPM)
+    if is_cap.any():  # tops (looking down) and bottoms (looking up) of prisms
+        img.cap[ys, xs] = is_cap
+        c_light = np.where(cam.s_v[ys] > 0, np.float32(lt.ambient + lt.sun * max(sd[2], 0.0)), np.float32(lt.ambient))
+        light = np.where(is_cap, c_light, light)
+        ax = np.where(is_cap, P["cap_x"][s], ax)
+        ay = np.where(is_cap, P["cap_y"][s], ay)
     tex = _sample_atlas(campus, ax, ay, np.log2(np.maximum(Z * np.float32(PPM / cam.fx), 1e-6)))
     c = tex[:, :3] * light[:, None]
     refl = np.where(is_cap, np.float32(0.0), tex[:, 3])
@@ -151,14 +155,12 @@ def _ground(campus: Campus, cam: LevelCamera, lt: Lighting, r0: int, tint: np.nd
     """Colour (lit, tinted) and class ids of the ground seen by level rows ``r0:``, mip-mapped by distance."""
     g = campus.ground
     h = cam.h
-    zg = (h / cam.s_v[r0:])[:, None]
-    gx = (cam.x + zg * cam.dx[None, :]).astype(np.float32)
-    gy = (cam.y + zg * cam.dy[None, :]).astype(np.float32)
-    mc = ((gx - g.x0) / RES - 0.5).astype(np.float32)
-    mr = ((gy - g.y0) / RES - 0.5).astype(np.float32)
+    zg = (h / cam.s_v[r0:]).astype(np.float32)[:, None]  # depth of the ground seen by each row
+    mc = zg * (cam.dx32 / np.float32(RES))[None, :] + np.float32((cam.x - g.x0) / RES - 0.5)  # raster column
+    mr = zg * (cam.dy32 / np.float32(RES))[None, :] + np.float32((cam.y - g.y0) / RES - 0.5)  # raster row
     fp = zg[:, 0] / math.sqrt(cam.fx * cam.fy) * np.sqrt(np.maximum(zg[:, 0] / h, 1.0))  # metres per pixel
     lod = np.clip(np.log2(np.maximum(fp / RES, 1e-6)), 0, MIP_LEVELS - 1).astype(np.float32)
-    alb = np.zeros(gx.shape + (3,), np.float32)
+    alb = np.zeros(mc.shape + (3,), np.float32)
     border = tuple(int(v) for v in OUTSIDE_RGB)
     for L in range(MIP_LEVELS):
         w = np.clip(1.0 - np.abs(lod - L), 0, 1)
@@ -178,8 +180,9 @@ def _ground(campus: Campus, cam: LevelCamera, lt: Lighting, r0: int, tint: np.nd
     if len(near):
         a = near[0]
         fade = np.clip((DETAIL_FADE[1] - fp[a:]) / (DETAIL_FADE[1] - DETAIL_FADE[0]), 0, 1).astype(np.float32)
-        grain = cv2.remap(g.detail, gx[a:] / np.float32(DETAIL_RES), gy[a:] / np.float32(DETAIL_RES), cv2.INTER_LINEAR,
-                          borderMode=cv2.BORDER_WRAP)
+        k = np.float32(RES / DETAIL_RES)
+        grain = cv2.remap(g.detail, (mc[a:] + np.float32(0.5 + g.x0 / RES)) * k, (mr[a:] + np.float32(0.5 + g.y0 / RES)) * k,
+                          cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
         shade[a:] *= 1.0 + grain * g.detail_amount[labels[a:]] * fade[:, None]
     alb *= shade[..., None]
     alb *= tint
