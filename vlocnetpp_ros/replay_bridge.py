@@ -278,3 +278,31 @@ class _Player:
         missing = self.published - self.summary.processed - sum(self.summary.skipped.values())
         if missing > 0:
             self.summary.skipped["dropped_or_rejected"] += missing
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m vlocnetpp_ros.replay_bridge``: what ``vlocnetpp replay --through-node`` runs (same flags)."""
+    import argparse
+
+    from vlocnetpp_core.bag.replay import add_arguments, parse_rate
+    from vlocnetpp_core.errors import UserError
+
+    parser = argparse.ArgumentParser(prog="vlocnetpp replay --through-node", description=__doc__.splitlines()[0])
+    add_arguments(parser)
+    args = parser.parse_args(argv)
+    try:
+        summary = replay_through_node(args.bag, args.out, args.checkpoint, image_topic=args.image_topic, rate_hz=parse_rate(args.rate),
+                                      max_gap_s=args.max_gap_s, use_depth=args.use_depth, device=args.device,
+                                      force=args.force, progress=not args.no_progress)
+    except UserError as err:
+        print(f"vlocnetpp replay: error: {err}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+    print(summary.format())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -14,7 +14,8 @@ latest ``/camera/camera_info``; the localizer resets its temporal state itself o
 longer than ``--max-gap-s`` (the converter leaves 10 s between sequences). Messages that share a
 log time are handled together, so a frame's camera info or depth is used whatever order the bag
 stores them in. With ``--through-node`` the real ROS node runs as a subprocess and the bag is
-played to it over DDS (:mod:`vlocnetpp_ros.replay_bridge`, imported only then); both paths give
+played to it over DDS by ``python -m vlocnetpp_ros.replay_bridge`` (a ROS program of its own: this
+module never imports ROS); both paths give
 the same poses for the same frames.
 
 Frames the localizer rejects (unsupported encoding, truncated data, ...) are skipped and counted.
@@ -25,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import subprocess
 import sys
 import time
 from collections import Counter
@@ -189,6 +191,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
+def bridge_argv(args: argparse.Namespace) -> list[str]:
+    """The ``replay`` flags again, for ``python -m vlocnetpp_ros.replay_bridge`` (which takes the same ones)."""
+    argv = [str(args.bag), "--checkpoint", str(args.checkpoint), "--out", str(args.out), "--through-node",
+            "--max-gap-s", repr(args.max_gap_s), "--device", args.device]
+    for flag, value in (("--image-topic", args.image_topic), ("--rate", args.rate)):
+        if value is not None:
+            argv += [flag, value]
+    argv += [flag for flag, on in (("--use-depth", args.use_depth), ("--force", args.force), ("--no-progress", args.no_progress)) if on]
+    return argv
+
+
 def parse_rate(text: str | None) -> float | None:
     """``None`` -> None (the bag's rate), ``"max"`` -> ``math.inf``, ``"HZ"`` -> a positive float."""
     if text is None:
@@ -215,11 +228,8 @@ def run(args: argparse.Namespace) -> int:
     if Path(args.out).exists() and not args.force:
         raise UserError(f"{args.out}: exists already (use --force to replace it)")
     if args.through_node:
-        from vlocnetpp_ros.replay_bridge import replay_through_node
-
-        summary = replay_through_node(args.bag, args.out, args.checkpoint, image_topic=args.image_topic, rate_hz=rate,
-                                      max_gap_s=args.max_gap_s, use_depth=args.use_depth, device=args.device,
-                                      force=args.force, progress=not args.no_progress)
+        # The DDS side is a ROS program of its own (vlocnetpp_core never imports ROS): same flags.
+        return subprocess.call([sys.executable, "-m", "vlocnetpp_ros.replay_bridge", *bridge_argv(args)])
     else:
         from vlocnetpp_core.localizer import Localizer
 
