@@ -21,20 +21,20 @@ COMMON=(--config lite --data "$DATA" --batch-size 8 --clip-len 3 --workers 1 --n
 
 # stl-loc and stl-seg are independent: run them side by side, one thread each.
 t=$(stamp)
-$V train "${COMMON[@]}" --stage stl-loc --out "$RUN/stl-loc" --steps "${LOC_STEPS:-2400}" --threads 1 $(resume_flag "$RUN/stl-loc") > "$RUN/stl-loc.out" 2>&1 &
+$V train "${COMMON[@]}" --stage stl-loc --out "$RUN/stl-loc" --steps "${LOC_STEPS:-2000}" --threads 1 $(resume_flag "$RUN/stl-loc") > "$RUN/stl-loc.out" 2>&1 &
 p1=$!
-$V train "${COMMON[@]}" --stage stl-seg --out "$RUN/stl-seg" --steps "${SEG_STEPS:-1500}" --threads 1 $(resume_flag "$RUN/stl-seg") > "$RUN/stl-seg.out" 2>&1 &
+$V train "${COMMON[@]}" --stage stl-seg --out "$RUN/stl-seg" --steps "${SEG_STEPS:-800}" --threads 1 $(resume_flag "$RUN/stl-seg") > "$RUN/stl-seg.out" 2>&1 &
 p2=$!
 wait $p1; wait $p2
 log "stl-loc + stl-seg (in parallel): $(( $(stamp) - t )) s"
 
 t=$(stamp)
-$V train "${COMMON[@]}" --stage stl-vo --out "$RUN/stl-vo" --steps "${VO_STEPS:-1200}" --threads 2 \
+$V train "${COMMON[@]}" --stage stl-vo --out "$RUN/stl-vo" --steps "${VO_STEPS:-800}" --threads 2 \
   --init "$RUN/stl-loc/best.safetensors" $(resume_flag "$RUN/stl-vo") > "$RUN/stl-vo.out" 2>&1
 log "stl-vo: $(( $(stamp) - t )) s"
 
 t=$(stamp)
-$V train "${COMMON[@]}" --stage mtl --out "$RUN/mtl" --steps "${MTL_STEPS:-1500}" --threads 2 \
+$V train "${COMMON[@]}" --stage mtl --out "$RUN/mtl" --steps "${MTL_STEPS:-700}" --threads 2 \
   --init "$RUN/stl-loc/best.safetensors" --init "$RUN/stl-vo/best.safetensors" --init "$RUN/stl-seg/best.safetensors" \
   $(resume_flag "$RUN/mtl") > "$RUN/mtl.out" 2>&1
 log "mtl: $(( $(stamp) - t )) s"

@@ -46,6 +46,8 @@ VERSION = 1
 DEFAULT_POSE_VARIANCE: tuple[float, ...] = (1.0, 1.0, 1.0) + (math.radians(5.0) ** 2,) * 3
 DEFAULT_ODOMETRY_VARIANCE: tuple[float, ...] = (0.1**2,) * 3 + (math.radians(1.0) ** 2,) * 3
 _SUFFIXES = (".safetensors", ".json")
+# The model shipped with the package, relative to share/vlocnetpp_ros/ (installed) or the source tree.
+SHIPPED_MODEL = "models/vlocnetpp_lite.safetensors"
 
 
 def checkpoint_paths(path: str | Path) -> tuple[Path, Path]:
@@ -226,3 +228,24 @@ def calibration_variances(meta: dict) -> tuple[np.ndarray, np.ndarray]:
     """``(pose_variance (6,), odometry_variance (6,))`` float64 of a sidecar (defaults filled in)."""
     calib = _complete_calibration(meta.get("calibration") or {})
     return np.asarray(calib["pose_variance"], dtype=np.float64), np.asarray(calib["odometry_variance"], dtype=np.float64)
+
+
+def shipped_checkpoint() -> Path:
+    """The shipped model: ``share/vlocnetpp_ros/models/vlocnetpp_lite.safetensors`` of the installed
+    package (found with ``ament_index_python`` when ``vlocnetpp_ros`` is on ``AMENT_PREFIX_PATH``), else
+    the source tree's ``models/``. Raises ``FileNotFoundError`` naming where it looked."""
+    candidates = []
+    try:
+        from ament_index_python.packages import get_package_share_directory
+
+        candidates.append(Path(get_package_share_directory("vlocnetpp_ros")) / SHIPPED_MODEL)
+    except Exception:  # PackageNotFoundError, or ament_index not importable
+        pass
+    source = Path(__file__).resolve().parents[1]
+    if (source / "package.xml").is_file():  # a source checkout (editable install)
+        candidates.append(source / SHIPPED_MODEL)
+    for path in candidates:
+        if path.is_file():
+            return path
+    looked = ", ".join(map(str, candidates)) or f"share/vlocnetpp_ros/{SHIPPED_MODEL} (vlocnetpp_ros is not on AMENT_PREFIX_PATH)"
+    raise FileNotFoundError(f"the shipped model is missing (looked for {looked})")

@@ -26,7 +26,7 @@ class Intrinsics:
     height: int
 
     @classmethod
-    def parse(cls, text: str, width: int, height: int) -> "Intrinsics":
+    def parse(cls, text: str, width: int, height: int) -> Intrinsics:
         """From ``"fx,fy,cx,cy"`` (the ``--intrinsics`` flag of every tool)."""
         try:
             fx, fy, cx, cy = (float(v) for v in text.split(","))
@@ -37,7 +37,7 @@ class Intrinsics:
         return cls(fx, fy, cx, cy, int(width), int(height))
 
     @classmethod
-    def from_matrix(cls, K, width: int, height: int) -> "Intrinsics":
+    def from_matrix(cls, K, width: int, height: int) -> Intrinsics:
         K = np.asarray(K, dtype=np.float64).reshape(3, 3)
         return cls(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), int(width), int(height))
 
@@ -45,18 +45,18 @@ class Intrinsics:
         """``3 x 3`` float64 camera matrix."""
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
 
-    def resized(self, width: int, height: int) -> "Intrinsics":
+    def resized(self, width: int, height: int) -> Intrinsics:
         """Intrinsics of this image resized (possibly anisotropically) to ``width x height``."""
         sx, sy = width / self.width, height / self.height
         return Intrinsics(
             self.fx * sx, self.fy * sy, (self.cx + 0.5) * sx - 0.5, (self.cy + 0.5) * sy - 0.5, int(width), int(height)
         )
 
-    def cropped(self, x0: int, y0: int, width: int, height: int) -> "Intrinsics":
+    def cropped(self, x0: int, y0: int, width: int, height: int) -> Intrinsics:
         """Intrinsics of the ``width x height`` crop whose top-left pixel is ``(x0, y0)``."""
         return Intrinsics(self.fx, self.fy, self.cx - x0, self.cy - y0, int(width), int(height))
 
-    def flipped_horizontally(self) -> "Intrinsics":
+    def flipped_horizontally(self) -> Intrinsics:
         """Intrinsics after mirroring the image left-right (``u -> W - 1 - u``)."""
         return Intrinsics(self.fx, self.fy, self.width - 1 - self.cx, self.cy, self.width, self.height)
 
@@ -64,7 +64,7 @@ class Intrinsics:
         return asdict(self)
 
     @classmethod
-    def from_dict(cls, d: dict) -> "Intrinsics":
+    def from_dict(cls, d: dict) -> Intrinsics:
         return cls(float(d["fx"]), float(d["fy"]), float(d["cx"]), float(d["cy"]), int(d["width"]), int(d["height"]))
 
 

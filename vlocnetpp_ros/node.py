@@ -43,6 +43,7 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import Header
 
+from vlocnetpp_core.checkpoint import SHIPPED_MODEL, shipped_checkpoint
 from vlocnetpp_core.errors import UserError
 from vlocnetpp_core.localizer import Localizer
 from vlocnetpp_core.preprocess import FrameError
@@ -51,14 +52,13 @@ from vlocnetpp_ros.diagnostics import NodeStats, ThrottledLog
 from vlocnetpp_ros.mailbox import LatestMailbox
 
 PACKAGE = "vlocnetpp_ros"
-DEFAULT_MODEL = "models/vlocnetpp_lite.safetensors"  # relative to the package share folder
 CAMERA_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5, reliability=ReliabilityPolicy.BEST_AVAILABLE)
 DEPTH_MATCH_FRAMES = 8  # depth images kept for matching colour stamps
 DEPTH_WAIT_S = 0.05  # how long a colour frame waits for its depth image (in the worker)
 
 # name -> (default, description); every one is in config/localizer.yaml.
 PARAMETERS: dict[str, tuple[object, str]] = {
-    "checkpoint": ("", f"checkpoint NAME.safetensors (NAME.json next to it); empty: the shipped share/{PACKAGE}/{DEFAULT_MODEL}"),
+    "checkpoint": ("", f"checkpoint NAME.safetensors (NAME.json next to it); empty: the shipped share/{PACKAGE}/{SHIPPED_MODEL}"),
     "image_topic": ("/camera/image_raw", "sensor_msgs/Image topic (with use_compressed: <image_topic>/compressed)"),
     "depth_topic": ("", "aligned depth Image (32FC1 metres or 16UC1 mm, same stamp and size as the colour image); empty: predicted depth"),
     "camera_info_topic": ("", "sensor_msgs/CameraInfo topic of the camera; empty: the checkpoint's default intrinsics"),
@@ -74,23 +74,11 @@ PARAMETERS: dict[str, tuple[object, str]] = {
 
 
 def default_checkpoint() -> Path:
-    """The shipped model: ``share/vlocnetpp_ros/models/vlocnetpp_lite.safetensors`` (or the source tree's ``models/``)."""
-    candidates = []
+    """The shipped model (see :func:`vlocnetpp_core.checkpoint.shipped_checkpoint`), as a node error when missing."""
     try:
-        from ament_index_python.packages import get_package_share_directory
-
-        candidates.append(Path(get_package_share_directory(PACKAGE)) / DEFAULT_MODEL)
-    except Exception:  # PackageNotFoundError, or ament_index not importable
-        pass
-    source = Path(__file__).resolve().parents[1]
-    if (source / "package.xml").is_file():  # running from a source checkout (editable install)
-        candidates.append(source / DEFAULT_MODEL)
-    for path in candidates:
-        if path.is_file():
-            return path
-    looked = ", ".join(map(str, candidates)) or f"share/{PACKAGE}/{DEFAULT_MODEL}, but {PACKAGE} is not on AMENT_PREFIX_PATH"
-    raise UserError(f"no 'checkpoint' parameter given and the shipped model is missing (looked for {looked}); "
-                    "set one with --ros-args -p checkpoint:=/path/NAME.safetensors")
+        return shipped_checkpoint()
+    except FileNotFoundError as err:
+        raise UserError(f"no 'checkpoint' parameter given and {err}; set one with --ros-args -p checkpoint:=/path/NAME.safetensors") from None
 
 
 def _check_parameters(p: dict) -> None:
