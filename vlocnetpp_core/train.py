@@ -236,7 +236,8 @@ def run(args: argparse.Namespace) -> int:
     val_clips = ClipDataset(val_index, args.clip_len, make_transform(False, size)) if val_index is not None else None
 
     model = VLocNetPP(config)
-    model.set_position_prior(np.mean([r.t for r in train_index.records], axis=0))
+    positions = np.array([r.t for r in train_index.records])
+    model.set_position_prior(positions.mean(axis=0), np.maximum(positions.std(axis=0), 1.0))
     model.to(device)
     criterion = VLocNetLoss(args.stage, depth=config.warping).to(device)
     sources = _load_inits(model, criterion, args.init, args.stage, log) if args.init else []

@@ -16,7 +16,10 @@ class PoseHead(nn.Module):
     """``BN -> ELU -> GAP -> fc1 (ELU, dropout) -> fc2 xyz (3), fc3 quaternion (4)``.
 
     ``(B, C, h, w) -> (xyz (B, 3), quat (B, 4))``; the quaternion is normalised to a unit
-    ``(w, x, y, z)`` with ``w >= 0``. fc3 starts at the identity rotation.
+    ``(w, x, y, z)`` with ``w >= 0``. fc3 starts at the identity rotation. Translations are
+    ``xyz_offset + xyz_scale * fc2(h)`` (buffers saved with the weights; 0 and 1 unless set, e.g.
+    to the mean and spread of the training positions), so fc2 regresses numbers of order one
+    whatever the size of the scene.
     """
 
     def __init__(self, in_channels: int, fc_width: int, dropout: float):
@@ -26,6 +29,8 @@ class PoseHead(nn.Module):
         self.dropout = nn.Dropout(dropout)
         self.fc_xyz = nn.Linear(fc_width, 3)
         self.fc_quat = nn.Linear(fc_width, 4)
+        self.register_buffer("xyz_offset", torch.zeros(3))
+        self.register_buffer("xyz_scale", torch.ones(3))
         self.custom_init()
 
     def custom_init(self) -> None:
@@ -38,7 +43,7 @@ class PoseHead(nn.Module):
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         h = self.norm(x).mean(dim=(2, 3))
         h = self.dropout(F.elu(self.fc1(h)))
-        return self.fc_xyz(h), quat_normalize(self.fc_quat(h))
+        return self.xyz_offset + self.xyz_scale * self.fc_xyz(h), quat_normalize(self.fc_quat(h))
 
 
 def bilinear_kernel(channels: int, kernel_size: int) -> torch.Tensor:

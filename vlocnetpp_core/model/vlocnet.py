@@ -156,12 +156,14 @@ class VLocNetPP(nn.Module):
         self.register_buffer("std", torch.tensor(config.std).view(1, 3, 1, 1), persistent=False)
         init_weights(self)
 
-    def set_position_prior(self, xyz: Iterable[float]) -> None:
-        """Start the global translation output at ``xyz`` (metres, world frame; e.g. the mean training
-        position) instead of the origin, so the head learns offsets rather than walking to the scene."""
-        bias = self.global_stream.head.fc_xyz.bias
+    def set_position_prior(self, xyz: Iterable[float], scale: Iterable[float] | float = 1.0) -> None:
+        """Centre the global translation output on ``xyz`` with spread ``scale`` (metres, world frame;
+        e.g. the mean and standard deviation of the training positions), so the head regresses
+        offsets of order one instead of walking to the scene from the origin."""
+        head = self.global_stream.head
         with torch.no_grad():
-            bias.copy_(torch.as_tensor(list(xyz), dtype=bias.dtype))
+            head.xyz_offset.copy_(torch.as_tensor(list(xyz), dtype=head.xyz_offset.dtype))
+            head.xyz_scale.copy_(torch.as_tensor(scale, dtype=head.xyz_scale.dtype).expand(3))
 
     # ------------------------------------------------------------------ streaming
 
