@@ -11,6 +11,9 @@ Per frame (:meth:`Localizer.step`):
 * The model runs one streaming step, fusing the previous frame's Res5a, odometry Res4 and
   semantic Res4f / Res5c features kept from the last call (the model's ``StreamState``) instead
   of recomputing the previous frame.
+* Backends: ``torch`` (default) runs ``VLocNetPP.step``; ``onnx`` runs the same step exported to
+  ONNX (:mod:`vlocnetpp_core.onnx_export`) with ONNX Runtime (:mod:`vlocnetpp_core.onnx_backend`),
+  faster on CPU (docs/performance.md); outputs agree to about 1e-5.
 * Outputs: global pose ``T_map,cam``; relative pose ``T_rel = T_{k-1}^{-1} T_k``; accumulated
   odometry ``T_odom,k = T_odom,k-1 T_rel,k`` (identity at construction, in the ``odom`` frame);
   twist = relative motion / dt in the current camera frame (linear ``R_rel^T t_rel / dt`` m/s,
@@ -43,11 +46,12 @@ import numpy as np
 import torch
 
 from vlocnetpp_core import geometry
-from vlocnetpp_core.checkpoint import calibration_variances, load_checkpoint
+from vlocnetpp_core.checkpoint import calibration_variances, checkpoint_paths, load_checkpoint
 from vlocnetpp_core.errors import UserError
 from vlocnetpp_core.intrinsics import Intrinsics
 from vlocnetpp_core.preprocess import FrameError, network_input, to_rgb
 
+BACKENDS = ("torch", "onnx")
 RESET_REASONS = ("start", "request", "stamp_backwards", "gap", "resolution_change", "intrinsics_change", "nan_output")
 MIN_VARIANCE = 1e-6
 UNKNOWN_VARIANCE = 1e6
@@ -81,11 +85,21 @@ class Localizer:
     """Streaming inference with temporal state. Build with :meth:`from_checkpoint`."""
 
     def __init__(self, model: torch.nn.Module, meta: dict, device: str | torch.device = "cpu", max_gap_s: float = 1.0,
-                 num_threads: int | None = None):
+                 num_threads: int | None = None, backend: str = "torch", onnx_path: str | Path | None = None):
+        """``backend``: ``"torch"`` runs ``model.step``; ``"onnx"`` runs the exported step with ONNX Runtime
+        (``onnx_path`` if it matches these weights, else a cached export; see :mod:`vlocnetpp_core.onnx_backend`)."""
+        if backend not in BACKENDS:
+            raise UserError(f"backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
         if num_threads:
             torch.set_num_threads(int(num_threads))
         self.device = torch.device(device)
         self.model = model.to(self.device).eval()
+        self.backend = backend
+        self._step_fn = self.model.step
+        if backend == "onnx":
+            from vlocnetpp_core.onnx_backend import onnx_step_for
+
+            self._step_fn = onnx_step_for(self.model, meta, self.device, num_threads, next_to=onnx_path)
         self.meta = meta
         self.max_gap_s = float(max_gap_s)
         self.input_size: tuple[int, int] = tuple(model.config.input_size)  # (W, H)
@@ -100,12 +114,15 @@ class Localizer:
         self.reset("start")
 
     @classmethod
-    def from_checkpoint(cls, path: str | Path, device: str = "cpu", max_gap_s: float = 1.0, num_threads: int | None = None) -> Localizer:
-        """Load ``NAME.safetensors`` + ``NAME.json`` (see :mod:`vlocnetpp_core.checkpoint`)."""
+    def from_checkpoint(cls, path: str | Path, device: str = "cpu", max_gap_s: float = 1.0, num_threads: int | None = None,
+                        backend: str = "torch") -> Localizer:
+        """Load ``NAME.safetensors`` + ``NAME.json`` (see :mod:`vlocnetpp_core.checkpoint`); the onnx
+        backend uses ``NAME.onnx`` next to them when it was exported from these weights."""
         if str(device).startswith("cuda") and not torch.cuda.is_available():
             raise UserError(f"device {device!r} requested but CUDA is not available (use device 'cpu')")
         model, meta = load_checkpoint(path, device=device)
-        return cls(model, meta, device=device, max_gap_s=max_gap_s, num_threads=num_threads)
+        return cls(model, meta, device=device, max_gap_s=max_gap_s, num_threads=num_threads, backend=backend,
+                   onnx_path=checkpoint_paths(path)[0].with_suffix(".onnx"))
 
     def reset(self, reason: str = "request", clear_odometry: bool = False) -> None:
         """Forget the temporal state; the next frame is a first frame reported with ``reason``.
@@ -144,7 +161,7 @@ class Localizer:
         if reason is not None:
             self._state = None
         with torch.inference_mode():
-            out, state = self.model.step(x.to(self.device), self._state, K.to(self.device), None if d is None else d.to(self.device))
+            out, state = self._step_fn(x.to(self.device), self._state, K.to(self.device), None if d is None else d.to(self.device))
             outputs = (out.xyz, out.quat, out.rel_xyz, out.rel_quat, out.seg_logits)
             finite = all(bool(torch.isfinite(v).all()) for v in outputs)
             if finite:

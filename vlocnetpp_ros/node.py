@@ -45,7 +45,7 @@ from std_msgs.msg import Header
 
 from vlocnetpp_core.checkpoint import SHIPPED_MODEL, shipped_checkpoint
 from vlocnetpp_core.errors import UserError
-from vlocnetpp_core.localizer import Localizer
+from vlocnetpp_core.localizer import BACKENDS, Localizer
 from vlocnetpp_core.preprocess import FrameError
 from vlocnetpp_ros import conversions
 from vlocnetpp_ros.diagnostics import NodeStats, ThrottledLog
@@ -70,6 +70,7 @@ PARAMETERS: dict[str, tuple[object, str]] = {
     "publish_segmentation": (True, "publish the class-id mask on vlocnet/segmentation"),
     "device": ("cpu", "torch device: cpu or cuda (cuda:N)"),
     "num_threads": (0, "torch CPU threads; 0: torch's default"),
+    "backend": ("torch", "inference backend: torch, or onnx (ONNX Runtime; NAME.onnx next to the checkpoint or a cached export)"),
 }
 
 
@@ -89,6 +90,8 @@ def _check_parameters(p: dict) -> None:
     dev = str(p["device"])
     if not (dev == "cpu" or dev == "cuda" or (dev.startswith("cuda:") and dev[5:].isdigit())):
         raise UserError(f"parameter device must be 'cpu', 'cuda' or 'cuda:N', got {dev!r}")
+    if p["backend"] not in BACKENDS:
+        raise UserError(f"parameter backend must be one of {', '.join(BACKENDS)}, got {p['backend']!r}")
     if not p["image_topic"]:
         raise UserError("parameter image_topic is empty")
 
@@ -104,9 +107,10 @@ class LocalizerNode(Node):
         self.params = p
         _check_parameters(p)
         checkpoint = Path(p["checkpoint"]) if p["checkpoint"] else default_checkpoint()
-        self.localizer = Localizer.from_checkpoint(checkpoint, device=p["device"], max_gap_s=p["max_gap_s"], num_threads=p["num_threads"] or None)
+        self.localizer = Localizer.from_checkpoint(checkpoint, device=p["device"], max_gap_s=p["max_gap_s"], num_threads=p["num_threads"] or None,
+                                                   backend=p["backend"])
         w, h = self.localizer.input_size
-        self.stats = NodeStats(info={"checkpoint": str(checkpoint), "device": str(p["device"]), "input_size": f"{w}x{h}"})
+        self.stats = NodeStats(info={"checkpoint": str(checkpoint), "device": str(p["device"]), "backend": p["backend"], "input_size": f"{w}x{h}"})
         self.warn = ThrottledLog(self.get_logger().warning)
         self._mailbox = LatestMailbox()
         self._intrinsics = None
@@ -133,7 +137,7 @@ class LocalizerNode(Node):
         self._stop = threading.Event()
         self._worker = threading.Thread(target=self._work, name="vlocnetpp-inference", daemon=True)
         self._worker.start()
-        self.get_logger().info(f"localizer ready: {checkpoint} on {p['device']} (network input {w}x{h}), camera {image_topic}")
+        self.get_logger().info(f"localizer ready: {checkpoint} on {p['device']} ({p['backend']}, network input {w}x{h}), camera {image_topic}")
 
     # ------------------------------------------------------------------ subscriptions
 

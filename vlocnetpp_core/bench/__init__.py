@@ -1,0 +1,258 @@
+"""``vlocnetpp bench``: speed and memory against the performance targets (DESIGN section 7), in one run.
+
+Figures (each with its target; ratios are measured interleaved, see :mod:`.timing`):
+
+=================================== ======== =========================================================
+``cached_vs_recompute_speedup``     >= 1.4   paper config: step recomputing frame t-1 / step with the cached state
+``mtl_step_over_resnet50``          <= 3.0   paper config: full multitask step / one plain ResNet-50 forward, same input
+``node_latency_over_step``          <= 1.10  lite: image-in -> pose-out through the real node over DDS / bare ``Localizer.step``
+``lite_hz``                         >= 15    lite: ``Localizer.step`` per second at its input size (faster backend; both reported)
+``converter_speed_over_png_decode`` >= 0.8   frames/s of ``vlocnetpp convert`` / frames/s of decoding the same PNGs alone
+``synth_fps``                       >= 30    synthetic campus frames rendered per second at 320x180
+``peak_rss_mb``                     (none)   peak resident memory of the node process while streaming (MiB)
+``paper_step_ms``                   <= 5     paper step in ms; target on CUDA only (DESIGN: H100 goal)
+=================================== ======== =========================================================
+
+Untrained checkpoints (``init_checkpoint``) are used: speed does not depend on the weights.
+``--quick`` (under a minute) runs the paper config at 224x128 instead of 448x256 and fewer
+repetitions, and says so in the output; ``--config FILE`` (YAML) overrides any field of
+:class:`BenchSettings`. Results on a machine running other jobs are noisy; the report gives the
+load average before and after.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import os
+import sys
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+from vlocnetpp_core.errors import DataError, UserError
+
+
+@dataclass
+class BenchSettings:
+    """What ``vlocnetpp bench`` runs. Sizes are ``(W, H)``; ``threads`` 0 = the library default."""
+
+    repetitions: int = 7
+    warmup: int = 2
+    paper_config: str = "paper"
+    paper_input_size: tuple[int, int] | None = None  # None: the config's (448x256 for paper)
+    lite_config: str = "lite"
+    camera_size: tuple[int, int] = (640, 360)
+    threads: int = 0
+    node: bool = True
+    node_backend: str = "torch"
+    node_repetitions: int = 30
+    node_warmup: int = 3
+    converter_frames: int = 120
+    synth_frames: int = 20
+    synth_size: tuple[int, int] = (320, 180)
+    scene: str = "campus"
+
+    @classmethod
+    def quick(cls) -> BenchSettings:
+        return cls(repetitions=3, warmup=1, paper_input_size=(224, 128), node_repetitions=8, node_warmup=2,
+                   converter_frames=30, synth_frames=6)
+
+    def updated(self, values: dict, source: str) -> BenchSettings:
+        """A copy with ``values`` (from a YAML file ``source``) applied, checked field by field."""
+        known = {f.name: f for f in dataclasses.fields(self)}
+        unknown = sorted(set(values) - set(known))
+        if unknown:
+            raise DataError(source, f"unknown bench setting(s) {', '.join(unknown)}; known: {', '.join(known)}")
+        out = {}
+        for name, value in values.items():
+            default = getattr(self, name)
+            if name.endswith("_size"):
+                if value is not None and not (isinstance(value, (list, tuple)) and len(value) == 2
+                                              and all(isinstance(v, int) and v > 0 for v in value)):
+                    raise DataError(source, f"{name} must be [width, height] in pixels, got {value!r}")
+                value = None if value is None else tuple(value)
+            elif isinstance(default, bool):
+                if not isinstance(value, bool):
+                    raise DataError(source, f"{name} must be true or false, got {value!r}")
+            elif isinstance(default, int):
+                if not isinstance(value, int) or isinstance(value, bool) or value < (0 if name in ("threads", "warmup") else 1):
+                    raise DataError(source, f"{name} must be a whole number >= {0 if name in ('threads', 'warmup') else 1}, got {value!r}")
+            elif not isinstance(value, str):
+                raise DataError(source, f"{name} must be a string, got {value!r}")
+            out[name] = value
+        if out.get("node_backend", self.node_backend) not in ("torch", "onnx"):
+            raise DataError(source, f"node_backend must be torch or onnx, got {out['node_backend']!r}")
+        return dataclasses.replace(self, **out)
+
+
+# name -> (comparison, target, what it is)
+TARGETS: dict[str, tuple[str, float | None, str]] = {
+    "cached_vs_recompute_speedup": (">=", 1.4, "paper step recomputing frame t-1 / step with cached state"),
+    "mtl_step_over_resnet50": ("<=", 3.0, "paper multitask step / plain ResNet-50 forward, same input"),
+    "node_latency_over_step": ("<=", 1.10, "lite: image-in -> pose-out via the node over DDS / bare Localizer.step"),
+    "lite_hz": (">=", 15.0, "lite Localizer.step per second (faster backend)"),
+    "converter_speed_over_png_decode": (">=", 0.8, "convert frames/s / PNG decode frames/s"),
+    "synth_fps": (">=", 30.0, "synthetic campus frames/s at 320x180"),
+    "peak_rss_mb": ("", None, "node peak resident memory while streaming (MiB)"),
+    "paper_step_ms": ("<=", None, "paper multitask step with cached state (ms); 5 ms goal on CUDA"),
+}
+GPU_PAPER_STEP_MS = 5.0
+NOT_TIMES = ("node_peak_rss_mb", "node_rss_mb", "converter_frames", "converter_bag_mb")  # measured values that are not seconds
+
+
+def run_bench(settings: BenchSettings, device: str = "cpu", quick: bool = False, progress=None) -> dict:
+    """Measure everything; returns the report (see :func:`format_table` and the module doc)."""
+    import onnxruntime
+    import torch
+
+    from vlocnetpp_core.bench import figures
+    from vlocnetpp_core.checkpoint import init_checkpoint
+
+    say = progress or (lambda _msg: None)
+    if device.startswith("cuda") and not torch.cuda.is_available():
+        raise UserError(f"--device {device}: CUDA is not available here")
+    if settings.threads:
+        torch.set_num_threads(settings.threads)
+    report: dict = {"machine": {"device": device, "cpus": os.cpu_count(), "torch_threads": torch.get_num_threads(),
+                                "torch": torch.__version__, "onnxruntime": onnxruntime.__version__, "load_average_start": figures.cpu_load()},
+                    "settings": {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(settings).items()},
+                    "quick": quick, "notes": [], "times_ms": {}}
+    times: dict = {}
+    with tempfile.TemporaryDirectory(prefix="vlocnetpp-bench-") as tmp:
+        work = Path(tmp)
+        say(f"synthetic campus: {settings.synth_frames} frames at {settings.synth_size[0]}x{settings.synth_size[1]}")
+        frames, synth = figures.synth_frames(max(settings.synth_frames, 2), settings.synth_size, settings.scene)
+        times.update(synth)
+        camera = figures.resize_all(frames, settings.camera_size)
+        say("paper config: cached vs recompute vs ResNet-50")
+        paper = figures.paper_step(settings.paper_config, settings.paper_input_size, frames, device, settings.repetitions, settings.warmup)
+        times.update({k: v for k, v in paper.items() if k != "input_size"})
+        report["paper_input_size"] = paper["input_size"]
+        if quick:
+            report["notes"].append(f"quick: paper config at {paper['input_size'][0]}x{paper['input_size'][1]} (not its 448x256), "
+                                   f"{settings.repetitions} repetitions, {settings.converter_frames} converter frames: indicative only")
+        lite_ckpt = init_checkpoint(settings.lite_config, work / "lite", seed=0)
+        say("lite config: Localizer.step, torch and onnx backends")
+        lite = figures.lite_step(lite_ckpt, camera, device, settings.threads, settings.repetitions * 3, settings.warmup)
+        if "onnx_error" in lite:
+            report["notes"].append(f"onnx backend not measured: {lite.pop('onnx_error')}")
+        report["lite_input_size"], report["camera_size"] = lite.pop("input_size"), lite.pop("camera_size")
+        times.update(lite)
+        if settings.node:
+            say("node: latency over DDS vs bare Localizer.step")
+            try:
+                node = figures.node_latency(lite_ckpt, camera, work, device, settings.threads, settings.node_backend,
+                                            settings.node_repetitions, settings.node_warmup)
+            except UserError as err:
+                report["notes"].append(f"node not measured: {err}")
+                node = {}
+            report["node_backend"] = node.pop("node_backend", None)
+            times.update(node)
+        say(f"converter: {settings.converter_frames} frames vs PNG decode")
+        times.update(figures.converter(work, settings.converter_frames, settings.synth_size, settings.repetitions, settings.warmup))
+    report["machine"]["load_average_end"] = figures.cpu_load()
+
+    step_onnx = times.get("lite_step_onnx")
+    best = "onnx" if step_onnx is not None and step_onnx < times["lite_step_torch"] else "torch"
+    values = {
+        "cached_vs_recompute_speedup": times["paper_step_recompute"] / times["paper_step_cached"],
+        "mtl_step_over_resnet50": times["paper_step_cached"] / times["resnet50_forward"],
+        "node_latency_over_step": times["node_latency"] / times["node_bare_step"] if "node_latency" in times else None,
+        "lite_hz": 1.0 / times[f"lite_step_{best}"],
+        "converter_speed_over_png_decode": times["png_decode_frame"] / times["converter_frame"],
+        "synth_fps": 1.0 / times["synth_frame"],
+        "peak_rss_mb": times.get("node_peak_rss_mb"),
+        "paper_step_ms": 1000.0 * times["paper_step_cached"],
+    }
+    report.update(values)
+    report["lite_backend"] = best
+    report["lite_hz_torch"] = 1.0 / times["lite_step_torch"]
+    report["lite_hz_onnx"] = None if step_onnx is None else 1.0 / step_onnx
+    report["times_ms"] = {k: round(1000.0 * v, 3) for k, v in times.items() if k not in NOT_TIMES and v is not None}
+    report.update({k: times[k] for k in NOT_TIMES if k in times})
+    targets = {}
+    for name, (op, target, what) in TARGETS.items():
+        if name == "paper_step_ms" and device.startswith("cuda"):
+            target, op = GPU_PAPER_STEP_MS, "<="
+        value = values[name]
+        met = None if target is None or value is None else (value >= target if op == ">=" else value <= target)
+        targets[name] = {"value": value, "target": target, "compare": op if target is not None else None, "met": met, "what": what}
+    report["targets"] = targets
+    report["notes"].append(f"lite_hz uses the {best} backend (torch {report['lite_hz_torch']:.1f} Hz"
+                           + (f", onnx {report['lite_hz_onnx']:.1f} Hz)" if step_onnx is not None else ")"))
+    return report
+
+
+def format_table(report: dict) -> str:
+    """The report as a text table: figure, value, target, met, and the absolute times behind it."""
+    t = report["times_ms"]
+    basis = {
+        "cached_vs_recompute_speedup": f"recompute {t.get('paper_step_recompute', 0):.1f} ms / cached {t.get('paper_step_cached', 0):.1f} ms"
+                                       f" at {report['paper_input_size'][0]}x{report['paper_input_size'][1]}",
+        "mtl_step_over_resnet50": f"step {t.get('paper_step_cached', 0):.1f} ms / ResNet-50 {t.get('resnet50_forward', 0):.1f} ms",
+        "node_latency_over_step": (f"node {t['node_latency']:.1f} ms / bare {t['node_bare_step']:.1f} ms ({report.get('node_backend')}, "
+                                   f"camera {report['camera_size'][0]}x{report['camera_size'][1]})") if "node_latency" in t else "not measured",
+        "lite_hz": f"{report['lite_backend']}: torch {t['lite_step_torch']:.1f} ms"
+                   + (f", onnx {t['lite_step_onnx']:.1f} ms" if "lite_step_onnx" in t else "")
+                   + f" at {report['lite_input_size'][0]}x{report['lite_input_size'][1]}",
+        "converter_speed_over_png_decode": f"decode {t['png_decode_frame']:.2f} ms / convert {t['converter_frame']:.2f} ms per frame",
+        "synth_fps": f"{t['synth_frame']:.1f} ms per frame",
+        "peak_rss_mb": f"now {report['node_rss_mb']:.0f} MiB" if "node_rss_mb" in report else "not measured",
+        "paper_step_ms": f"{report['machine']['device']}",
+    }
+    rows = [("figure", "value", "target", "met", "absolute")]
+    for name, entry in report["targets"].items():
+        value = "-" if entry["value"] is None else f"{entry['value']:.2f}"
+        target = "-" if entry["target"] is None else f"{entry['compare']} {entry['target']:g}"
+        met = {True: "yes", False: "NO", None: "-"}[entry["met"]]
+        rows.append((name, value, target, met, basis[name]))
+    widths = [max(len(r[i]) for r in rows) for i in range(4)]
+    lines = ["  ".join(r[i].ljust(widths[i]) for i in range(4)) + "  " + r[4] for r in rows]
+    m = report["machine"]
+    lines.append(f"\n{m['device']}, {m['cpus']} CPUs, torch {m['torch']} ({m['torch_threads']} threads), onnxruntime {m['onnxruntime']}; "
+                 f"load average {m['load_average_start']} -> {m['load_average_end']}")
+    lines += [f"note: {n}" for n in report["notes"]]
+    return "\n".join(lines)
+
+
+def _jsonable(obj):
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    if isinstance(obj, dict):
+        return {k: _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    return obj
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
+    p.add_argument("--config", metavar="FILE", default=None, help="YAML of bench settings overriding the defaults (see BenchSettings)")
+    p.add_argument("--device", default="cpu", help="cpu or cuda (cuda:N) for the network figures (default cpu)")
+    p.add_argument("--quick", action="store_true", help="under a minute: paper config at 224x128, few repetitions (indicative only)")
+
+
+def run(args: argparse.Namespace) -> int:
+    import yaml
+
+    dev = str(args.device)
+    if not (dev == "cpu" or dev == "cuda" or (dev.startswith("cuda:") and dev[5:].isdigit())):
+        raise UserError(f"--device must be cpu, cuda or cuda:N, got {dev!r}")
+    settings = BenchSettings.quick() if args.quick else BenchSettings()
+    if args.config:
+        path = Path(args.config)
+        if not path.is_file():
+            raise DataError(path, "no such bench settings file")
+        try:
+            values = yaml.safe_load(path.read_text()) or {}
+        except yaml.YAMLError as err:
+            raise DataError(path, f"not valid YAML: {err}") from None
+        if not isinstance(values, dict):
+            raise DataError(path, "expected a mapping of bench settings")
+        settings = settings.updated(values, str(path))
+    report = run_bench(settings, dev, args.quick, progress=lambda msg: print(f"bench: {msg}", file=sys.stderr))
+    print(json.dumps(_jsonable(report), indent=2) if args.json else format_table(report))
+    return 0

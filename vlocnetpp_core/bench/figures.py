@@ -1,0 +1,178 @@
+"""The measurements behind ``vlocnetpp bench``; each returns absolute times (seconds, medians) and sizes.
+
+Every function times its cases interleaved (:func:`~vlocnetpp_core.bench.timing.interleaved`) so
+that the two sides of a ratio see the same machine noise.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from vlocnetpp_core.bench.timing import interleaved, median, synchronizer
+from vlocnetpp_core.errors import UserError
+
+
+def synth_frames(count: int, size: tuple[int, int], scene: str = "campus", seed: int = 0) -> tuple[list[np.ndarray], dict]:
+    """``count`` consecutive frames (RGB uint8) of a 20 Hz test visit of the synthetic campus at ``size = (W, H)``.
+
+    Returns the frames and ``{"synth_frame": s, "campus_build": s}``: the median render time of
+    one frame (:func:`render_frame` only; building the campus is timed separately, once).
+    """
+    from vlocnetpp_core.data.synth import default_intrinsics, plan_visit, render_frame
+    from vlocnetpp_core.data.synth.campus import load_campus
+
+    start = time.perf_counter()
+    campus = load_campus(scene)
+    build = time.perf_counter() - start
+    visit = plan_visit(campus, seed, "test", 0, count, frame_interval=0.05)
+    K = default_intrinsics(*size)
+    frames, times = [], []
+    for i in range(count):
+        start = time.perf_counter()
+        rgb, _, _ = render_frame(campus, visit.t[i], visit.q[i], K, visit.lighting, visit.objects_at(i))
+        times.append(time.perf_counter() - start)
+        frames.append(rgb)
+    return frames, {"synth_frame": median(times), "campus_build": build}
+
+
+def paper_step(config: str, input_size: tuple[int, int] | None, frames: list[np.ndarray], device: str, repetitions: int,
+               warmup: int) -> dict:
+    """Paper-config streaming step with the cached state vs recomputing the previous frame, and one
+    plain ResNet-50 forward at the same input size; all in ``torch.inference_mode``, eval mode.
+
+    "Recompute" is what a network without the cache does for frame t: a first-frame step on frame
+    t-1 (which yields its Res5a, odometry Res4 and semantic Res4f/Res5c; its heads and decoder
+    are computed too, a few percent of the step) followed by the step on frame t.
+    """
+    from vlocnetpp_core.bench.resnet50 import ResNet50
+    from vlocnetpp_core.model import VLocNetPP, load_model_config
+
+    cfg = load_model_config(config)
+    if input_size is not None:
+        cfg = dataclasses.replace(cfg, input_size=tuple(input_size))
+    W, H = cfg.input_size
+    torch.manual_seed(0)
+    model = VLocNetPP(cfg).eval().to(device)
+    resnet = ResNet50().eval().to(device)
+    prev, cur = (_image_tensor(f, (W, H), device) for f in (frames[0], frames[1]))
+    K = torch.tensor([[[0.55 * W, 0.0, (W - 1) / 2], [0.0, 0.55 * W, (H - 1) / 2], [0.0, 0.0, 1.0]]], device=device)
+    with torch.inference_mode():
+        _, state = model.step(prev, None, K)
+
+        def recompute() -> None:
+            _, s = model.step(prev, None, K)
+            model.step(cur, s, K)
+
+        times = interleaved({"cached": lambda: model.step(cur, state, K), "recompute": recompute, "resnet50": lambda: resnet(cur)},
+                            repetitions, warmup, synchronizer(device))
+    return {"input_size": [W, H], "paper_step_cached": median(times["cached"]), "paper_step_recompute": median(times["recompute"]),
+            "resnet50_forward": median(times["resnet50"])}
+
+
+def _image_tensor(rgb: np.ndarray, size: tuple[int, int], device: str) -> torch.Tensor:
+    from vlocnetpp_core.preprocess import image_tensor, resize_image
+
+    return image_tensor(resize_image(rgb, size)).to(device)
+
+
+def lite_step(checkpoint: Path, frames: list[np.ndarray], device: str, threads: int, repetitions: int, warmup: int) -> dict:
+    """``Localizer.step`` (decode, resize, model step, mask) of the lite checkpoint on camera frames,
+    torch and ONNX Runtime backends interleaved, each on its own stream of the same frames.
+
+    The ONNX graph is exported next to the checkpoint first (``NAME.onnx``), so the onnx backend
+    finds it. On a device where the onnx backend cannot run (CUDA without onnxruntime-gpu), its
+    entry is None and ``onnx_error`` says why.
+    """
+    from vlocnetpp_core.localizer import Localizer
+    from vlocnetpp_core.onnx_export import export_checkpoint
+
+    start = time.perf_counter()
+    export_checkpoint(checkpoint, checkpoint.with_suffix(".onnx"))
+    export_s = time.perf_counter() - start
+    localizers = {"torch": Localizer.from_checkpoint(checkpoint, device=device, num_threads=threads or None)}
+    result: dict = {"onnx_export": export_s, "lite_step_onnx": None}
+    try:
+        localizers["onnx"] = Localizer.from_checkpoint(checkpoint, device=device, num_threads=threads or None, backend="onnx")
+    except UserError as err:
+        result["onnx_error"] = str(err)
+    counters = {name: 0 for name in localizers}
+
+    def stepper(name: str):
+        def step() -> None:
+            k = counters[name]
+            counters[name] += 1
+            localizers[name].step(frames[k % len(frames)], "rgb8", 0.05 * k)
+        return step
+
+    times = interleaved({name: stepper(name) for name in localizers}, repetitions, warmup, synchronizer(device))
+    for name, values in times.items():
+        result[f"lite_step_{name}"] = median(values)
+    result["camera_size"] = [int(frames[0].shape[1]), int(frames[0].shape[0])]
+    result["input_size"] = list(localizers["torch"].input_size)
+    return result
+
+
+def node_latency(checkpoint: Path, frames: list[np.ndarray], workdir: Path, device: str, threads: int, backend: str,
+                 repetitions: int, warmup: int, timeout_s: float = 300.0) -> dict:
+    """Run ``python -m vlocnetpp_ros.latency_bench`` (the real node over DDS vs the bare Localizer,
+    interleaved); medians of its per-frame seconds, and the node's memory."""
+    path = workdir / "camera_frames.npy"
+    np.save(path, np.stack(frames))
+    argv = [sys.executable, "-m", "vlocnetpp_ros.latency_bench", "--checkpoint", str(checkpoint), "--frames", str(path),
+            "--repetitions", str(repetitions), "--warmup", str(warmup), "--device", device, "--backend", backend,
+            "--num-threads", str(threads)]
+    try:
+        proc = subprocess.run(argv, capture_output=True, text=True, timeout=timeout_s, stdin=subprocess.DEVNULL)
+    except subprocess.TimeoutExpired:
+        raise UserError(f"the node latency measurement did not finish within {timeout_s:.0f} s") from None
+    if proc.returncode != 0:
+        tail = "\n".join((proc.stderr or proc.stdout).strip().splitlines()[-8:])
+        raise UserError(f"the node latency measurement failed (exit code {proc.returncode}):\n{tail}")
+    raw = json.loads(proc.stdout.strip().splitlines()[-1])
+    return {"node_latency": median(raw["latency_s"]), "node_bare_step": median(raw["step_s"]), "node_peak_rss_mb": raw["node_peak_rss_mb"],
+            "node_rss_mb": raw["node_rss_mb"], "node_startup": raw["startup_s"], "node_backend": backend}
+
+
+def converter(workdir: Path, frames: int, size: tuple[int, int], repetitions: int, warmup: int) -> dict:
+    """``vlocnetpp convert`` (raw ``rgb8``) of a rendered DeepLoc-layout test loop vs decoding the same PNG
+    files alone (``cv2.imread`` of every colour and label image the converter reads, one thread).
+    The converter's fixed costs (opening, closing and renaming the bag) are included."""
+    from vlocnetpp_core.bag.convert import convert
+    from vlocnetpp_core.data import open_dataset
+    from vlocnetpp_core.data.synth import render_dataset
+
+    root = workdir / "converter_dataset"
+    render_dataset(root, train_loops=0, test_loops=1, frames_per_loop=frames, size=size, progress=False, frame_interval=0.05)
+    index = open_dataset(root, split="test")
+    pngs = [p for r in index.records for p in (r.image, r.labels) if p is not None and p.endswith(".png")]
+    out = workdir / "converter.mcap"
+
+    def decode() -> None:
+        for p in pngs:
+            cv2.imread(p, cv2.IMREAD_UNCHANGED)
+
+    times = interleaved({"convert": lambda: convert([index], out, force=True, progress=False), "decode": decode}, repetitions, warmup)
+    return {"converter_frame": median(times["convert"]) / len(index), "png_decode_frame": median(times["decode"]) / len(index),
+            "converter_frames": len(index), "converter_bag_mb": out.stat().st_size / 2**20}
+
+
+def cpu_load() -> list[float] | None:
+    """1, 5 and 15 minute load averages (None where the OS has none)."""
+    try:
+        return [round(v, 2) for v in os.getloadavg()]
+    except OSError:
+        return None
+
+
+def resize_all(frames: list[np.ndarray], size: tuple[int, int]) -> list[np.ndarray]:
+    return [cv2.resize(f, tuple(size), interpolation=cv2.INTER_LINEAR) for f in frames]

@@ -1,0 +1,169 @@
+"""``python -m vlocnetpp_ros.latency_bench``: image-in -> pose-out latency of the real node over DDS,
+interleaved with the bare :meth:`Localizer.step` on the same frames; what ``vlocnetpp bench`` runs
+for ``node_latency_over_step`` (core never imports ROS, so this is a program of its own).
+
+The node is the ``localizer`` program (as ``vlocnetpp replay --through-node`` starts it: see
+:func:`vlocnetpp_ros.replay_bridge.localizer_command`) in a private namespace. Each round sends one
+``rgb8`` frame (stamps 50 ms apart, so the temporal state carries on), waits for its
+``PoseStamped`` (the latency: publish call to pose callback, both in this process) and for its
+segmentation (the node has then finished the frame), and runs this process's own
+:class:`Localizer` (same checkpoint, device, backend, threads) on the same frame; the order of the
+two alternates each round so machine noise hits both alike. Frames before ``--warmup`` are not
+counted. At the end the node's peak resident memory (``VmHWM``) is read from ``/proc``.
+
+Prints one JSON object: ``latency_s`` and ``step_s`` (lists, seconds per counted frame),
+``node_peak_rss_mb``, ``node_rss_mb``, ``startup_s``. Exit code 2 with one line on stderr when the
+node cannot start or stops answering.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import rclpy
+from geometry_msgs.msg import PoseStamped
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import Image
+from std_msgs.msg import Header
+
+from vlocnetpp_core.errors import UserError
+from vlocnetpp_core.localizer import BACKENDS, Localizer
+from vlocnetpp_ros import conversions
+from vlocnetpp_ros.replay_bridge import _NodeProcess, localizer_command, node_arguments
+
+FRAME_INTERVAL_S = 0.05
+_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE)
+
+
+def proc_status_mb(pid: int, key: str) -> float:
+    """``VmHWM`` / ``VmRSS`` of a process in MiB (Linux ``/proc``)."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith(key + ":"):
+            return int(line.split()[1]) / 1024
+    raise UserError(f"no {key} in /proc/{pid}/status")
+
+
+class _Probe:
+    """Publisher of camera frames and recorder of the arrival time of the node's answers, by stamp."""
+
+    def __init__(self, namespace: str):
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context)
+        self.node = rclpy.create_node("vlocnetpp_latency_bench", namespace=namespace, context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self.image_pub = self.node.create_publisher(Image, f"{namespace}/camera/image", _QOS)
+        self.pose_at: dict[float, float] = {}
+        self.seg_at: dict[float, float] = {}
+        stamp_of = conversions.stamp_to_seconds
+        self.subs = [
+            self.node.create_subscription(PoseStamped, f"{namespace}/vlocnet/pose",
+                                          lambda m: self.pose_at.setdefault(stamp_of(m.header.stamp), time.perf_counter()), _QOS),
+            self.node.create_subscription(Image, f"{namespace}/vlocnet/segmentation",
+                                          lambda m: self.seg_at.setdefault(stamp_of(m.header.stamp), time.perf_counter()), _QOS),
+        ]
+
+    def connected(self) -> bool:
+        return self.image_pub.get_subscription_count() > 0 and all(s.get_publisher_count() > 0 for s in self.subs)
+
+    def spin_until(self, done, timeout_s: float) -> bool:
+        deadline = time.monotonic() + timeout_s
+        while not done():
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return False
+            self.executor.spin_once(timeout_sec=min(left, 0.05))
+        return True
+
+    def close(self) -> None:
+        self.executor.shutdown(timeout_sec=1.0)
+        self.node.destroy_node()
+        self.context.try_shutdown()
+
+
+def measure(checkpoint: str, frames: np.ndarray, repetitions: int, warmup: int, device: str = "cpu", backend: str = "torch",
+            num_threads: int = 0, startup_timeout_s: float = 120.0, answer_timeout_s: float = 30.0) -> dict:
+    """Run the node and the bare Localizer interleaved over ``frames (N, H, W, 3) uint8 RGB`` (cycled); see module doc."""
+    namespace = f"/vlocnetpp_latency_{os.getpid()}"
+    start = time.perf_counter()
+    argv = localizer_command() + node_arguments(namespace, checkpoint, False, False, 1.0, device)
+    argv += ["-p", f"backend:={backend}", "-p", f"num_threads:={int(num_threads)}"]
+    probe = _Probe(namespace)
+    node = _NodeProcess(argv)
+    try:
+        while not probe.spin_until(probe.connected, 0.2):
+            node.check_alive()
+            if time.perf_counter() - start > startup_timeout_s:
+                raise UserError(f"the localizer node did not connect within {startup_timeout_s:.0f} s:\n{node.tail()}")
+        localizer = Localizer.from_checkpoint(checkpoint, device=device, num_threads=num_threads or None, backend=backend)
+        startup_s = time.perf_counter() - start
+        latency, step = [], []
+        for k in range(warmup + repetitions):
+            image = frames[k % len(frames)]
+            stamp = k * FRAME_INTERVAL_S
+            msg = conversions.array_to_image(image, "rgb8", Header(stamp=conversions.seconds_to_stamp(stamp), frame_id="camera"))
+            stamp = conversions.stamp_to_seconds(msg.header.stamp)
+            if k % 2 == 0:
+                node_s = _through_node(probe, node, msg, stamp, answer_timeout_s)
+                bare_s = _bare(localizer, image, stamp)
+            else:
+                bare_s = _bare(localizer, image, stamp)
+                node_s = _through_node(probe, node, msg, stamp, answer_timeout_s)
+            if k >= warmup:
+                latency.append(node_s)
+                step.append(bare_s)
+        return {"latency_s": latency, "step_s": step, "node_peak_rss_mb": proc_status_mb(node.proc.pid, "VmHWM"),
+                "node_rss_mb": proc_status_mb(node.proc.pid, "VmRSS"), "startup_s": startup_s}
+    finally:
+        node.stop()
+        probe.close()
+
+
+def _through_node(probe: _Probe, node: _NodeProcess, msg: Image, stamp: float, timeout_s: float) -> float:
+    sent = time.perf_counter()
+    probe.image_pub.publish(msg)
+    if not probe.spin_until(lambda: stamp in probe.pose_at and stamp in probe.seg_at, timeout_s):
+        node.check_alive()
+        raise UserError(f"the localizer node did not answer the frame stamped {stamp:.3f} s within {timeout_s:.0f} s:\n{node.tail()}")
+    return probe.pose_at[stamp] - sent
+
+
+def _bare(localizer: Localizer, image: np.ndarray, stamp: float) -> float:
+    start = time.perf_counter()
+    localizer.step(image, "rgb8", stamp)
+    return time.perf_counter() - start
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m vlocnetpp_ros.latency_bench", description=__doc__.splitlines()[0])
+    parser.add_argument("--checkpoint", required=True, metavar="NAME.safetensors")
+    parser.add_argument("--frames", required=True, metavar="FRAMES.npy", help="(N, H, W, 3) uint8 RGB camera frames, cycled")
+    parser.add_argument("--repetitions", type=int, default=20, metavar="N", help="frames measured (default 20)")
+    parser.add_argument("--warmup", type=int, default=3, metavar="N", help="frames sent first and not measured (default 3)")
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--backend", choices=BACKENDS, default="torch")
+    parser.add_argument("--num-threads", type=int, default=0, metavar="N", help="torch / ONNX Runtime threads of both sides (0: default)")
+    args = parser.parse_args(argv)
+    try:
+        frames = np.load(args.frames)
+        if frames.ndim != 4 or frames.shape[-1] != 3 or frames.dtype != np.uint8:
+            raise UserError(f"{args.frames}: expected (N, H, W, 3) uint8 frames, got {frames.shape} {frames.dtype}")
+        result = measure(args.checkpoint, frames, args.repetitions, args.warmup, args.device, args.backend, args.num_threads)
+    except UserError as err:
+        print(f"latency_bench: error: {err}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+    print(json.dumps(result))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
