@@ -49,9 +49,8 @@ def run(args: argparse.Namespace) -> int:
     from vlocnetpp_core.classes import CLASS_NAMES
     from vlocnetpp_core.data import open_dataset
     from vlocnetpp_core.data.synth import render_dataset
-    from vlocnetpp_core.evaluate import format_report, write_json
+    from vlocnetpp_core.evaluate import format_report, write_outputs
     from vlocnetpp_core.metrics import evaluate_sequences
-    from vlocnetpp_core.plots import write_plots
 
     if args.seed == TRAINING_SEED:
         raise UserError(f"--seed {TRAINING_SEED} is the seed the shipped model was trained on; pick another for a fair test")
@@ -97,17 +96,15 @@ def run(args: argparse.Namespace) -> int:
     wall = _seconds_per_frame(summary, n)
     if wall is not None:
         report["overall"]["timing"]["through_node_ms"] = 1000 * wall
-    write_json(out / "metrics.json", report)
-    write_plots(out / "plots", results, CLASS_NAMES)
     _done(t0)
 
     print("\nResults on the fresh test loops (ms/frame: see below)\n")
     print(format_report(report, frames))
     if wall is not None:
         print(f"through the node: {1000 * wall:.1f} ms per frame (image published -> pose received, lockstep, including DDS)")
-    print(f"\nplots:       {out / 'plots'}/ (trajectories, errors over time, confusion matrix, segmentation strips)")
-    print(f"output bag:  {result_bag} (input topics + /vlocnet/pose, /vlocnet/odometry, /vlocnet/segmentation)")
-    print(f"metrics:     {out / 'metrics.json'}")
+    print()
+    write_outputs(report, results, CLASS_NAMES, out / "metrics.json", None, out / "plots")
+    print(f"output bag: {result_bag} (input topics + /vlocnet/pose, /vlocnet/odometry, /vlocnet/segmentation)")
     print(f"demo finished in {time.perf_counter() - start:.0f} s")
     return 0
 

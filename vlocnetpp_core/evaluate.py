@@ -17,7 +17,7 @@ import argparse
 import json
 import math
 import os
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -242,15 +242,21 @@ def run(args: argparse.Namespace) -> int:
     print(format_report(report, {r.name: len(r.stamps) for r in results}))
     if rejected:
         print("frames rejected by the localizer (left out): " + ", ".join(f"{k} {v}" for k, v in sorted(rejected.items())))
-    if args.json:
-        write_json(args.json, report)
-        print(f"metrics: {args.json}")
-    if args.trajectories:
-        write_trajectories(args.trajectories, results)
-        print(f"trajectories (TUM): {args.trajectories}")
-    if args.plots:
+    write_outputs(report, results, class_names, args.json, args.trajectories, args.plots)
+    return 0
+
+
+def write_outputs(report: dict, results: list[SequenceResult], class_names: Sequence[str], json_path: str | Path | None = None,
+                  trajectories: str | Path | None = None, plots: str | Path | None = None) -> None:
+    """Write the report as JSON, the TUM trajectories and the plots, where asked, and say where they went."""
+    if json_path:
+        write_json(json_path, report)
+        print(f"metrics: {json_path}")
+    if trajectories:
+        write_trajectories(trajectories, results)
+        print(f"trajectories (TUM): {trajectories}")
+    if plots:
         from vlocnetpp_core.plots import write_plots
 
-        write_plots(args.plots, results, class_names)
-        print(f"plots: {args.plots}")
-    return 0
+        write_plots(plots, results, class_names)
+        print(f"plots: {plots}")

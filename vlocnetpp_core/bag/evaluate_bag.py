@@ -191,7 +191,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from vlocnetpp_core.evaluate import _positive, format_report, parse_lengths, write_json, write_trajectories
+    from vlocnetpp_core.evaluate import _positive, format_report, parse_lengths, write_outputs
 
     threshold = (_positive(args.threshold_m, "--threshold-m"), _positive(args.threshold_deg, "--threshold-deg"))
     thresholds = list(DEFAULT_THRESHOLDS[:1]) + ([threshold] if accuracy_key(*threshold) != accuracy_key(*DEFAULT_THRESHOLDS[0]) else [])
@@ -205,15 +205,5 @@ def run(args: argparse.Namespace) -> int:
     print(format_report(report, {r.name: len(r.stamps) for r in results}))
     if any(r.rel_t is None for r in results):
         print(f"note: {ODOMETRY_TOPIC} missing for some frames: no odometry metrics for those sequences", file=sys.stderr)
-    if args.json:
-        write_json(args.json, report)
-        print(f"metrics: {args.json}")
-    if args.trajectories:
-        write_trajectories(args.trajectories, results)
-        print(f"trajectories (TUM): {args.trajectories}")
-    if args.plots:
-        from vlocnetpp_core.plots import write_plots
-
-        write_plots(args.plots, results, CLASS_NAMES)
-        print(f"plots: {args.plots}")
+    write_outputs(report, results, CLASS_NAMES, args.json, args.trajectories, args.plots)
     return 0
