@@ -11,6 +11,10 @@ segmentation (the node has then finished the frame), and runs this process's own
 two alternates each round so machine noise hits both alike. Frames before ``--warmup`` are not
 counted. At the end the node's peak resident memory (``VmHWM``) is read from ``/proc``.
 
+Transport (``--transport``): ``large_data`` (default) runs both sides with the shipped Fast DDS
+profile ``config/fastdds_large_data.xml`` (shared memory for large messages; what docs/node.md
+recommends for camera images), ``environment`` leaves the DDS settings of the environment as they are.
+
 Prints one JSON object: ``latency_s`` and ``step_s`` (lists, seconds per counted frame),
 ``node_peak_rss_mb``, ``node_rss_mb``, ``startup_s``. Exit code 2 with one line on stderr when the
 node cannot start or stops answering.
@@ -39,6 +43,7 @@ from vlocnetpp_ros import conversions
 from vlocnetpp_ros.replay_bridge import _NodeProcess, localizer_command, node_arguments
 
 FRAME_INTERVAL_S = 0.05
+PROFILE = "fastdds_large_data.xml"
 _QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE)
 
 
@@ -88,9 +93,32 @@ class _Probe:
         self.context.try_shutdown()
 
 
+def large_data_profile() -> Path:
+    """``config/fastdds_large_data.xml`` of the installed package, else of the source tree."""
+    candidates = []
+    try:
+        from ament_index_python.packages import get_package_share_directory
+
+        candidates.append(Path(get_package_share_directory("vlocnetpp_ros")) / "config" / PROFILE)
+    except Exception:  # PackageNotFoundError, or ament_index not importable
+        pass
+    candidates.append(Path(__file__).resolve().parents[1] / "config" / PROFILE)
+    for path in candidates:
+        if path.is_file():
+            return path
+    raise UserError(f"the Fast DDS profile {PROFILE} is missing (looked for {', '.join(map(str, candidates))})")
+
+
 def measure(checkpoint: str, frames: np.ndarray, repetitions: int, warmup: int, device: str = "cpu", backend: str = "torch",
-            num_threads: int = 0, startup_timeout_s: float = 120.0, answer_timeout_s: float = 30.0) -> dict:
-    """Run the node and the bare Localizer interleaved over ``frames (N, H, W, 3) uint8 RGB`` (cycled); see module doc."""
+            num_threads: int = 0, transport: str = "large_data", startup_timeout_s: float = 120.0, answer_timeout_s: float = 30.0) -> dict:
+    """Run the node and the bare Localizer interleaved over ``frames (N, H, W, 3) uint8 RGB`` (cycled); see module doc.
+
+    ``transport="large_data"`` sets ``FASTRTPS_DEFAULT_PROFILES_FILE`` in this process (before its DDS
+    participant exists) and so in the node's environment."""
+    if transport == "large_data":
+        os.environ["FASTRTPS_DEFAULT_PROFILES_FILE"] = str(large_data_profile())
+    elif transport != "environment":
+        raise UserError(f"transport must be large_data or environment, got {transport!r}")
     namespace = f"/vlocnetpp_latency_{os.getpid()}"
     start = time.perf_counter()
     argv = localizer_command() + node_arguments(namespace, checkpoint, False, False, 1.0, device)
@@ -149,13 +177,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--warmup", type=int, default=3, metavar="N", help="frames sent first and not measured (default 3)")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--backend", choices=BACKENDS, default="torch")
+    parser.add_argument("--transport", choices=("large_data", "environment"), default="large_data",
+                        help="DDS settings of both sides: the shipped large-data Fast DDS profile (default) or the environment's")
     parser.add_argument("--num-threads", type=int, default=0, metavar="N", help="torch / ONNX Runtime threads of both sides (0: default)")
     args = parser.parse_args(argv)
     try:
         frames = np.load(args.frames)
         if frames.ndim != 4 or frames.shape[-1] != 3 or frames.dtype != np.uint8:
             raise UserError(f"{args.frames}: expected (N, H, W, 3) uint8 frames, got {frames.shape} {frames.dtype}")
-        result = measure(args.checkpoint, frames, args.repetitions, args.warmup, args.device, args.backend, args.num_threads)
+        result = measure(args.checkpoint, frames, args.repetitions, args.warmup, args.device, args.backend, args.num_threads, args.transport)
     except UserError as err:
         print(f"latency_bench: error: {err}", file=sys.stderr)
         return 2

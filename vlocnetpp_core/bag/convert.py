@@ -16,8 +16,9 @@ starting at 0 s, and each sequence starts :data:`vlocnetpp_core.data.sample.SEQU
 ends, longer than the node's ``max_gap_s``, so a replay resets the temporal state between loops.
 With ``--split all`` the test split follows the train split the same way.
 
-The conversion streams: one frame is decoded, written and freed at a time (memory does not grow
-with the dataset). The bag is written to a hidden temporary folder and renamed into place when
+The conversion streams (memory does not grow with the dataset): a background thread decodes up to
+:data:`PREFETCH_FRAMES` frames ahead while the main thread serialises and writes the current one, so
+PNG decoding (which releases the GIL) overlaps with writing on a machine with two cores or more. The bag is written to a hidden temporary folder and renamed into place when
 complete (see :mod:`vlocnetpp_core.bag.bagfile`); an error, Ctrl-C or SIGTERM leaves nothing.
 """
 
@@ -27,12 +28,16 @@ import argparse
 import math
 import sys
 import time
+from collections import deque
+from collections.abc import Iterable, Iterator
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import closing
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from vlocnetpp_core.bag import messages
 from vlocnetpp_core.bag.bagfile import BagWriter, sigterm_as_interrupt
-from vlocnetpp_core.data.sample import DatasetIndex, sequence_stamps
+from vlocnetpp_core.data.sample import DatasetIndex, Frame, sequence_stamps
 from vlocnetpp_core.errors import DataError, UserError
 
 CAMERA_FRAME = "camera"
@@ -44,6 +49,7 @@ CAMERA_INFO_TOPIC = "/camera/camera_info"
 SEMANTIC_TOPIC = "/camera/semantic"
 GROUND_TRUTH_TOPIC = "/ground_truth/pose"
 DEFAULT_RATE_HZ = {"deeploc": 20.0, "7scenes": 30.0}
+PREFETCH_FRAMES = 4
 
 
 @dataclass
@@ -86,6 +92,27 @@ def check_listed_images(index: DatasetIndex) -> None:
             raise DataError(missing, f"image listed in {split_dir / 'poses.txt'} not found (use --skip-missing to leave such poses out)")
 
 
+def prefetched(frames: Iterable[tuple[DatasetIndex, int]], ahead: int = PREFETCH_FRAMES) -> Iterator[Frame]:
+    """``index.load(i)`` of each ``(index, i)`` in order, decoded by one background thread at most ``ahead``
+    frames ahead (a decoding error is raised here, at its frame). Closing the iterator early cancels the rest."""
+    items = iter(frames)
+    pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="convert-decode")
+    pending: deque = deque()
+    try:
+        for index, i in items:
+            pending.append(pool.submit(index.load, i))
+            if len(pending) >= ahead:
+                break
+        while pending:
+            frame = pending.popleft().result()
+            nxt = next(items, None)
+            if nxt is not None:
+                pending.append(pool.submit(nxt[0].load, nxt[1]))
+            yield frame
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
 def convert(indexes: list[DatasetIndex], out: str | Path, compress: str | None = None, rate_hz: float | None = None,
             force: bool = False, progress: bool = True) -> ConvertSummary:
     """Write the records of ``indexes`` (one or more splits, in order) as the bag ``out`` (see module doc).
@@ -106,7 +133,9 @@ def convert(indexes: list[DatasetIndex], out: str | Path, compress: str | None =
     image_topic = IMAGE_TOPIC if compress is None else COMPRESSED_TOPIC
     start = time.perf_counter()
     writer = BagWriter(out, force=force)
-    with sigterm_as_interrupt(), writer, tqdm(total=len(frames), unit="frame", desc="convert", disable=not progress, file=sys.stderr) as bar:
+    loaded = prefetched(frames)
+    with sigterm_as_interrupt(), writer, closing(loaded), tqdm(total=len(frames), unit="frame", desc="convert", disable=not progress,
+                                                               file=sys.stderr) as bar:
         writer.add_topic(CAMERA_INFO_TOPIC, messages.CAMERA_INFO)
         writer.add_topic(image_topic, messages.IMAGE if compress is None else messages.COMPRESSED_IMAGE)
         if any(index.has_depth for index in indexes):
@@ -114,8 +143,7 @@ def convert(indexes: list[DatasetIndex], out: str | Path, compress: str | None =
         if any(index.has_labels for index in indexes):
             writer.add_topic(SEMANTIC_TOPIC, messages.IMAGE)
         writer.add_topic(GROUND_TRUTH_TOPIC, messages.POSE_STAMPED)
-        for (index, i), stamp in zip(frames, stamps, strict=True):
-            frame = index.load(i)
+        for frame, stamp in zip(loaded, stamps, strict=True):
             ns = messages.seconds_to_ns(stamp)
             writer.write(CAMERA_INFO_TOPIC, ns, messages.camera_info(ns, CAMERA_FRAME, frame.intrinsics))
             if compress is None:

@@ -48,6 +48,7 @@ class BenchSettings:
     threads: int = 0
     node: bool = True
     node_backend: str = "torch"
+    node_transport: str = "large_data"  # or "environment" (see vlocnetpp_ros.latency_bench)
     node_repetitions: int = 30
     node_warmup: int = 3
     converter_frames: int = 120
@@ -85,6 +86,8 @@ class BenchSettings:
             out[name] = value
         if out.get("node_backend", self.node_backend) not in ("torch", "onnx"):
             raise DataError(source, f"node_backend must be torch or onnx, got {out['node_backend']!r}")
+        if out.get("node_transport", self.node_transport) not in ("large_data", "environment"):
+            raise DataError(source, f"node_transport must be large_data or environment, got {out['node_transport']!r}")
         return dataclasses.replace(self, **out)
 
 
@@ -145,11 +148,10 @@ def run_bench(settings: BenchSettings, device: str = "cpu", quick: bool = False,
             say("node: latency over DDS vs bare Localizer.step")
             try:
                 node = figures.node_latency(lite_ckpt, camera, work, device, settings.threads, settings.node_backend,
-                                            settings.node_repetitions, settings.node_warmup)
+                                            settings.node_transport, settings.node_repetitions, settings.node_warmup)
             except UserError as err:
                 report["notes"].append(f"node not measured: {err}")
                 node = {}
-            report["node_backend"] = node.pop("node_backend", None)
             times.update(node)
         say(f"converter: {settings.converter_frames} frames vs PNG decode")
         times.update(figures.converter(work, settings.converter_frames, settings.synth_size, settings.repetitions, settings.warmup))
@@ -193,7 +195,8 @@ def format_table(report: dict) -> str:
         "cached_vs_recompute_speedup": f"recompute {t.get('paper_step_recompute', 0):.1f} ms / cached {t.get('paper_step_cached', 0):.1f} ms"
                                        f" at {report['paper_input_size'][0]}x{report['paper_input_size'][1]}",
         "mtl_step_over_resnet50": f"step {t.get('paper_step_cached', 0):.1f} ms / ResNet-50 {t.get('resnet50_forward', 0):.1f} ms",
-        "node_latency_over_step": (f"node {t['node_latency']:.1f} ms / bare {t['node_bare_step']:.1f} ms ({report.get('node_backend')}, "
+        "node_latency_over_step": (f"node {t['node_latency']:.1f} ms / bare {t['node_bare_step']:.1f} ms ({report['settings']['node_backend']}, "
+                                   f"{report['settings']['node_transport']} DDS, "
                                    f"camera {report['camera_size'][0]}x{report['camera_size'][1]})") if "node_latency" in t else "not measured",
         "lite_hz": f"{report['lite_backend']}: torch {t['lite_step_torch']:.1f} ms"
                    + (f", onnx {t['lite_step_onnx']:.1f} ms" if "lite_step_onnx" in t else "")

@@ -122,7 +122,7 @@ def lite_step(checkpoint: Path, frames: list[np.ndarray], device: str, threads: 
     return result
 
 
-def node_latency(checkpoint: Path, frames: list[np.ndarray], workdir: Path, device: str, threads: int, backend: str,
+def node_latency(checkpoint: Path, frames: list[np.ndarray], workdir: Path, device: str, threads: int, backend: str, transport: str,
                  repetitions: int, warmup: int, timeout_s: float = 300.0) -> dict:
     """Run ``python -m vlocnetpp_ros.latency_bench`` (the real node over DDS vs the bare Localizer,
     interleaved); medians of its per-frame seconds, and the node's memory."""
@@ -130,7 +130,7 @@ def node_latency(checkpoint: Path, frames: list[np.ndarray], workdir: Path, devi
     np.save(path, np.stack(frames))
     argv = [sys.executable, "-m", "vlocnetpp_ros.latency_bench", "--checkpoint", str(checkpoint), "--frames", str(path),
             "--repetitions", str(repetitions), "--warmup", str(warmup), "--device", device, "--backend", backend,
-            "--num-threads", str(threads)]
+            "--num-threads", str(threads), "--transport", transport]
     try:
         proc = subprocess.run(argv, capture_output=True, text=True, timeout=timeout_s, stdin=subprocess.DEVNULL)
     except subprocess.TimeoutExpired:
@@ -140,13 +140,14 @@ def node_latency(checkpoint: Path, frames: list[np.ndarray], workdir: Path, devi
         raise UserError(f"the node latency measurement failed (exit code {proc.returncode}):\n{tail}")
     raw = json.loads(proc.stdout.strip().splitlines()[-1])
     return {"node_latency": median(raw["latency_s"]), "node_bare_step": median(raw["step_s"]), "node_peak_rss_mb": raw["node_peak_rss_mb"],
-            "node_rss_mb": raw["node_rss_mb"], "node_startup": raw["startup_s"], "node_backend": backend}
+            "node_rss_mb": raw["node_rss_mb"], "node_startup": raw["startup_s"]}
 
 
 def converter(workdir: Path, frames: int, size: tuple[int, int], repetitions: int, warmup: int) -> dict:
     """``vlocnetpp convert`` (raw ``rgb8``) of a rendered DeepLoc-layout test loop vs decoding the same PNG
     files alone (``cv2.imread`` of every colour and label image the converter reads, one thread).
-    The converter's fixed costs (opening, closing and renaming the bag) are included."""
+    The converter's fixed costs (opening, closing and renaming the bag) are included; deleting the
+    previous round's bag is not (on a filesystem mounted with ``discard`` that alone can take tens of ms)."""
     from vlocnetpp_core.bag.convert import convert
     from vlocnetpp_core.data import open_dataset
     from vlocnetpp_core.data.synth import render_dataset
@@ -161,9 +162,18 @@ def converter(workdir: Path, frames: int, size: tuple[int, int], repetitions: in
         for p in pngs:
             cv2.imread(p, cv2.IMREAD_UNCHANGED)
 
-    times = interleaved({"convert": lambda: convert([index], out, force=True, progress=False), "decode": decode}, repetitions, warmup)
+    def remove_output(_name: str) -> None:  # untimed: deleting the last bag is not part of converting
+        out.unlink(missing_ok=True)
+
+    size_mb = []
+
+    def convert_once() -> None:
+        convert([index], out, progress=False)
+        size_mb.append(out.stat().st_size / 2**20)
+
+    times = interleaved({"convert": convert_once, "decode": decode}, repetitions, warmup, after=remove_output)
     return {"converter_frame": median(times["convert"]) / len(index), "png_decode_frame": median(times["decode"]) / len(index),
-            "converter_frames": len(index), "converter_bag_mb": out.stat().st_size / 2**20}
+            "converter_frames": len(index), "converter_bag_mb": size_mb[-1]}
 
 
 def cpu_load() -> list[float] | None:

@@ -19,17 +19,20 @@ def synchronizer(device: str | torch.device) -> Callable[[], None]:
 
 
 def interleaved(cases: dict[str, Callable[[], object]], repetitions: int, warmup: int = 1,
-                sync: Callable[[], None] = lambda: None) -> dict[str, list[float]]:
+                sync: Callable[[], None] = lambda: None, after: Callable[[str], None] | None = None) -> dict[str, list[float]]:
     """Seconds of each call of each case.
 
     ``warmup`` untimed rounds first (allocations, lazy initialisation, caches), then
     ``repetitions`` rounds; each round calls every case once, starting with a different case
     each round (rotation), so no case always runs first or after the same neighbour.
+    ``after(name)``, if given, runs untimed after every call (clean-up such as deleting an output).
     """
     names = list(cases)
     for _ in range(warmup):
         for name in names:
             cases[name]()
+            if after is not None:
+                after(name)
     sync()
     times: dict[str, list[float]] = {name: [] for name in names}
     for r in range(repetitions):
@@ -39,6 +42,8 @@ def interleaved(cases: dict[str, Callable[[], object]], repetitions: int, warmup
             cases[name]()
             sync()
             times[name].append(time.perf_counter() - start)
+            if after is not None:
+                after(name)
     return times
 
 
