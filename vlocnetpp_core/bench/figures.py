@@ -147,7 +147,11 @@ def converter(workdir: Path, frames: int, size: tuple[int, int], repetitions: in
     """``vlocnetpp convert`` (raw ``rgb8``) of a rendered DeepLoc-layout test loop vs decoding the same PNG
     files alone (``cv2.imread`` of every colour and label image the converter reads, one thread).
     The converter's fixed costs (opening, closing and renaming the bag) are included; deleting the
-    previous round's bag is not (on a filesystem mounted with ``discard`` that alone can take tens of ms)."""
+    previous round's bag is not (on a filesystem mounted with ``discard`` that alone can take tens of ms).
+
+    CPU times per frame are reported too (the converter's decoding thread, the rest of the process, and
+    the plain decode): on a loaded machine they vary much less than wall times, and the larger of the
+    converter's two threads bounds its wall time on an otherwise idle machine with two cores."""
     from vlocnetpp_core.bag.convert import convert
     from vlocnetpp_core.data import open_dataset
     from vlocnetpp_core.data.synth import render_dataset
@@ -158,22 +162,41 @@ def converter(workdir: Path, frames: int, size: tuple[int, int], repetitions: in
     pngs = [p for r in index.records for p in (r.image, r.labels) if p is not None and p.endswith(".png")]
     out = workdir / "converter.mcap"
 
-    def decode() -> None:
-        for p in pngs:
-            cv2.imread(p, cv2.IMREAD_UNCHANGED)
-
     def remove_output(_name: str) -> None:  # untimed: deleting the last bag is not part of converting
         out.unlink(missing_ok=True)
 
-    size_mb = []
+    size_mb, cpu = [], {"decode_thread": [], "main_thread": [], "png_decode": []}
+    load = index.load
+
+    def timed_load(i: int):  # the converter's decoding thread: count its CPU time
+        start = time.thread_time()
+        frame = load(i)
+        decode_cpu[0] += time.thread_time() - start
+        return frame
+
+    decode_cpu = [0.0]
+    index.load = timed_load
 
     def convert_once() -> None:
+        decode_cpu[0] = 0.0
+        start = time.process_time()
         convert([index], out, progress=False)
+        cpu["decode_thread"].append(decode_cpu[0])
+        cpu["main_thread"].append(time.process_time() - start - decode_cpu[0])
         size_mb.append(out.stat().st_size / 2**20)
 
+    def decode() -> None:
+        start = time.thread_time()
+        for p in pngs:
+            cv2.imread(p, cv2.IMREAD_UNCHANGED)
+        cpu["png_decode"].append(time.thread_time() - start)
+
     times = interleaved({"convert": convert_once, "decode": decode}, repetitions, warmup, after=remove_output)
-    return {"converter_frame": median(times["convert"]) / len(index), "png_decode_frame": median(times["decode"]) / len(index),
-            "converter_frames": len(index), "converter_bag_mb": size_mb[-1]}
+    n = len(index)
+    cpu_ms = {k: median(v) / n for k, v in cpu.items()}
+    return {"converter_frame": median(times["convert"]) / n, "png_decode_frame": median(times["decode"]) / n,
+            "converter_cpu_decode_thread": cpu_ms["decode_thread"], "converter_cpu_main_thread": cpu_ms["main_thread"],
+            "png_decode_cpu": cpu_ms["png_decode"], "converter_frames": n, "converter_bag_mb": size_mb[-1]}
 
 
 def cpu_load() -> list[float] | None:
