@@ -16,9 +16,10 @@ starting at 0 s, and each sequence starts :data:`vlocnetpp_core.data.sample.SEQU
 ends, longer than the node's ``max_gap_s``, so a replay resets the temporal state between loops.
 With ``--split all`` the test split follows the train split the same way.
 
-The conversion streams (memory does not grow with the dataset): a background thread decodes up to
-:data:`PREFETCH_FRAMES` frames ahead while the main thread serialises and writes the current one, so
-PNG decoding (which releases the GIL) overlaps with writing on a machine with two cores or more. The bag is written to a hidden temporary folder and renamed into place when
+The conversion streams (memory does not grow with the dataset): :data:`DECODE_THREADS` background
+threads decode up to :data:`PREFETCH_FRAMES` frames ahead while the main thread serialises and writes
+the current one, so PNG decoding (which releases the GIL) overlaps with writing on a machine with
+two cores or more. The bag is written to a hidden temporary folder and renamed into place when
 complete (see :mod:`vlocnetpp_core.bag.bagfile`); an error, Ctrl-C or SIGTERM leaves nothing.
 """
 
@@ -50,6 +51,7 @@ SEMANTIC_TOPIC = "/camera/semantic"
 GROUND_TRUTH_TOPIC = "/ground_truth/pose"
 DEFAULT_RATE_HZ = {"deeploc": 20.0, "7scenes": 30.0}
 PREFETCH_FRAMES = 4
+DECODE_THREADS = 2
 
 
 @dataclass
@@ -93,10 +95,11 @@ def check_listed_images(index: DatasetIndex) -> None:
 
 
 def prefetched(frames: Iterable[tuple[DatasetIndex, int]], ahead: int = PREFETCH_FRAMES) -> Iterator[Frame]:
-    """``index.load(i)`` of each ``(index, i)`` in order, decoded by one background thread at most ``ahead``
-    frames ahead (a decoding error is raised here, at its frame). Closing the iterator early cancels the rest."""
+    """``index.load(i)`` of each ``(index, i)`` in order, decoded by :data:`DECODE_THREADS` background threads
+    at most ``ahead`` frames ahead (a decoding error is raised here, at its frame). Closing the iterator
+    early cancels the rest."""
     items = iter(frames)
-    pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="convert-decode")
+    pool = ThreadPoolExecutor(max_workers=DECODE_THREADS, thread_name_prefix="convert-decode")
     pending: deque = deque()
     try:
         for index, i in items:

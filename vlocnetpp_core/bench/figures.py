@@ -149,9 +149,9 @@ def converter(workdir: Path, frames: int, size: tuple[int, int], repetitions: in
     The converter's fixed costs (opening, closing and renaming the bag) are included; deleting the
     previous round's bag is not (on a filesystem mounted with ``discard`` that alone can take tens of ms).
 
-    CPU times per frame are reported too (the converter's decoding thread, the rest of the process, and
-    the plain decode): on a loaded machine they vary much less than wall times, and the larger of the
-    converter's two threads bounds its wall time on an otherwise idle machine with two cores."""
+    CPU times per frame are reported too (the converter's decoding threads, the rest of the process, and
+    the plain decode): on a loaded machine they vary much less than wall times, and they bound the
+    converter's wall time on an otherwise idle machine with two cores (see ``run_bench``)."""
     from vlocnetpp_core.bag.convert import convert
     from vlocnetpp_core.data import open_dataset
     from vlocnetpp_core.data.synth import render_dataset
@@ -165,24 +165,24 @@ def converter(workdir: Path, frames: int, size: tuple[int, int], repetitions: in
     def remove_output(_name: str) -> None:  # untimed: deleting the last bag is not part of converting
         out.unlink(missing_ok=True)
 
-    size_mb, cpu = [], {"decode_thread": [], "main_thread": [], "png_decode": []}
-    load = index.load
+    size_mb, cpu = [], {"decode_threads": [], "main_thread": [], "png_decode": []}
+    load, decode_cpu = index.load, []
 
-    def timed_load(i: int):  # the converter's decoding thread: count its CPU time
+    def timed_load(i: int):  # runs in the converter's decoding threads: collect their CPU time (list.append is atomic)
         start = time.thread_time()
         frame = load(i)
-        decode_cpu[0] += time.thread_time() - start
+        decode_cpu.append(time.thread_time() - start)
         return frame
 
-    decode_cpu = [0.0]
     index.load = timed_load
 
     def convert_once() -> None:
-        decode_cpu[0] = 0.0
+        decode_cpu.clear()
         start = time.process_time()
         convert([index], out, progress=False)
-        cpu["decode_thread"].append(decode_cpu[0])
-        cpu["main_thread"].append(time.process_time() - start - decode_cpu[0])
+        total = time.process_time() - start
+        cpu["decode_threads"].append(sum(decode_cpu))
+        cpu["main_thread"].append(total - sum(decode_cpu))
         size_mb.append(out.stat().st_size / 2**20)
 
     def decode() -> None:
@@ -195,7 +195,7 @@ def converter(workdir: Path, frames: int, size: tuple[int, int], repetitions: in
     n = len(index)
     cpu_ms = {k: median(v) / n for k, v in cpu.items()}
     return {"converter_frame": median(times["convert"]) / n, "png_decode_frame": median(times["decode"]) / n,
-            "converter_cpu_decode_thread": cpu_ms["decode_thread"], "converter_cpu_main_thread": cpu_ms["main_thread"],
+            "converter_cpu_decode_threads": cpu_ms["decode_threads"], "converter_cpu_main_thread": cpu_ms["main_thread"],
             "png_decode_cpu": cpu_ms["png_decode"], "converter_frames": n, "converter_bag_mb": size_mb[-1]}
 
 
