@@ -156,3 +156,41 @@ def test_export_cli_and_errors(exported, tmp_path, capsys):
         Localizer.from_checkpoint(ckpt, backend="tensorrt")
     with pytest.raises(ValueError, match="224"):
         OnnxStep(out)(torch.zeros(1, 3, 64, 64), None, torch.eye(3)[None])
+
+
+def test_node_runs_the_onnx_backend(exported, monkeypatch):
+    """``backend: onnx`` in the node: its poses are the onnx Localizer's on the same frames; a bad value stops it."""
+    import rclpy
+    from node_fixtures import Harness, camera_frames, domain_id, image_msg, wait_until
+    from rclpy.parameter import Parameter
+    from sensor_msgs.msg import Image
+
+    from vlocnetpp_ros.node import LocalizerNode
+
+    ckpt, _ = exported
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=domain_id(140))
+    params = {"checkpoint": str(ckpt), "num_threads": 1, "backend": "onnx"}
+    try:
+        with pytest.raises(UserError, match="backend must be"):
+            LocalizerNode(context=ctx, parameter_overrides=[Parameter(k, value=v) for k, v in {**params, "backend": "trt"}.items()])
+        node = LocalizerNode(context=ctx, parameter_overrides=[Parameter(k, value=v) for k, v in params.items()])
+        tester = Harness(ctx, extra_nodes=(node,))
+        try:
+            assert node.localizer.backend == "onnx" and node.stats.info["backend"] == "onnx"
+            tester.wait_for_subscriber("/camera/image_raw", Image)
+            frames = camera_frames(3)
+            for k, frame in enumerate(frames):
+                tester.publish("/camera/image_raw", image_msg(frame, "rgb8", 0.05 * k))
+                wait_until(lambda k=k: tester.count("pose") > k, 30.0, f"pose {k}")
+            reference = Localizer.from_checkpoint(ckpt, num_threads=1, backend="onnx")
+            for k, (frame, msg) in enumerate(zip(frames, tester.answers("pose"), strict=True)):
+                p = msg.pose.position
+                np.testing.assert_allclose([p.x, p.y, p.z], reference.step(frame, "rgb8", 0.05 * k).t, atol=1e-6)
+        finally:
+            tester.close()
+            node.close()
+            node.destroy_node()
+    finally:
+        ctx.try_shutdown()
