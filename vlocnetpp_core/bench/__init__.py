@@ -156,7 +156,12 @@ def run_bench(settings: BenchSettings, device: str = "cpu", quick: bool = False,
         say(f"converter: {settings.converter_frames} frames vs PNG decode")
         times.update(figures.converter(work, settings.converter_frames, settings.synth_size, settings.repetitions, settings.warmup))
     report["machine"]["load_average_end"] = figures.cpu_load()
+    _add_figures(report, times, device)
+    return report
 
+
+def _add_figures(report: dict, times: dict, device: str) -> None:
+    """The figures, their targets and the absolute times (ms) from the measured ``times`` (seconds)."""
     step_onnx = times.get("lite_step_onnx")
     best = "onnx" if step_onnx is not None and step_onnx < times["lite_step_torch"] else "torch"
     values = {
@@ -188,7 +193,6 @@ def run_bench(settings: BenchSettings, device: str = "cpu", quick: bool = False,
     report["targets"] = targets
     report["notes"].append(f"lite_hz uses the {best} backend (torch {report['lite_hz_torch']:.1f} Hz"
                            + (f", onnx {report['lite_hz_onnx']:.1f} Hz)" if step_onnx is not None else ")"))
-    return report
 
 
 def format_table(report: dict) -> str:
