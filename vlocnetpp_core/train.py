@@ -343,6 +343,8 @@ def run(args: argparse.Namespace) -> int:
                 logf.flush()
                 if step >= total:
                     break
+    if is_main and total == 0:  # nothing to train: write the initialised network (e.g. mtl assembled from its stages)
+        write_files(step, calibration, True)
     if progress is not None:
         progress.close()
     if distributed:
