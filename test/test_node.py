@@ -262,10 +262,9 @@ def test_a_best_effort_camera_started_after_the_node_is_received(make_node):
 
     wait_until(first_answered, 30.0, "an answer to the best-effort camera")
     wait_until(lambda: node.stats.processed + node.stats.dropped == node.stats.received, 10.0, "idle")
-    n = harness.count("pose")
     camera.publish(image_msg(frames[1], "rgb8", 0.05))  # once, now that it is matched
-    wait_until(lambda: harness.count("pose") == n + 1, 30.0, "the next frame answered")
-    assert harness.stamps()[-1] == 0.05
+    # (a late copy of the repeated first frame may still be answered before it: wait for the stamp itself)
+    wait_until(lambda: 0.05 in harness.stamps(), 30.0, "the next frame answered")
 
 
 def test_start_up_errors_are_user_errors(checkpoint: Path, tmp_path: Path, monkeypatch):
