@@ -47,7 +47,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
-def _positive(value: float, flag: str) -> float:
+def positive_flag(value: float, flag: str) -> float:
     if not (math.isfinite(value) and value > 0):
         raise UserError(f"{flag} must be a positive number, got {value}")
     return value
@@ -64,7 +64,7 @@ def parse_lengths(text: str | None) -> list[float] | None:
     if not lengths:
         raise UserError("--odometry-lengths is empty")
     for v in lengths:
-        _positive(v, "--odometry-lengths")
+        positive_flag(v, "--odometry-lengths")
     return lengths
 
 
@@ -73,7 +73,7 @@ def sequence_name(sequence_id: int) -> str:
     return f"seq-{sequence_id:02d}"
 
 
-def _sample_positions(n: int, k: int) -> set[int]:
+def sample_positions(n: int, k: int) -> set[int]:
     return set(np.linspace(0, n - 1, k).round().astype(int).tolist()) if n > 0 and k > 0 else set()
 
 
@@ -107,7 +107,7 @@ def run_localizer(localizer, index, max_frames: int | None = None, samples: int 
             name = sequence_name(index.records[rng[0]].sequence)
             bar.set_postfix_str(name)
             recorder = SequenceRecorder(name, localizer.num_classes)
-            keep = {rng[p] for p in _sample_positions(len(rng), samples)}
+            keep = {rng[p] for p in sample_positions(len(rng), samples)}
             localizer.reset("start")
             for i in rng:
                 frame = index.load(i)
@@ -216,7 +216,7 @@ def _check_outputs(args: argparse.Namespace) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    threshold = (_positive(args.threshold_m, "--threshold-m"), _positive(args.threshold_deg, "--threshold-deg"))
+    threshold = (positive_flag(args.threshold_m, "--threshold-m"), positive_flag(args.threshold_deg, "--threshold-deg"))
     thresholds = list(DEFAULT_THRESHOLDS[:1]) + ([threshold] if accuracy_key(*threshold) != accuracy_key(*DEFAULT_THRESHOLDS[0]) else [])
     lengths = parse_lengths(args.odometry_lengths)
     if args.max_frames is not None and args.max_frames < 1:

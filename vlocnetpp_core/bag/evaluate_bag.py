@@ -156,12 +156,12 @@ def collect_results(path: str | Path, ground_truth_topic: str = GROUND_TRUTH_TOP
                     samples: int = 0, num_classes: int = len(CLASS_NAMES)) -> list[SequenceResult]:
     """One :class:`SequenceResult` per sequence of the bag at ``path`` (see the module doc); ``samples``
     frames per sequence are kept for the segmentation strip plot."""
-    from vlocnetpp_core.evaluate import _sample_positions, sequence_name
+    from vlocnetpp_core.evaluate import sample_positions, sequence_name
 
     with BagReader(path) as reader:
         frames = read_matched_frames(reader, ground_truth_topic, max_gap_s)
         where = {s: (k, p) for k, rng in enumerate(frames.sequences) for p, s in enumerate(frames.stamps[rng].tolist())}
-        sample_stamps = {int(frames.stamps[rng[p]]) for rng in frames.sequences for p in _sample_positions(len(rng), samples)}
+        sample_stamps = {int(frames.stamps[rng[p]]) for rng in frames.sequences for p in sample_positions(len(rng), samples)}
         seg = score_segmentation(reader, where, sample_stamps, num_classes)
     results = []
     for k, rng in enumerate(frames.sequences):
@@ -191,9 +191,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from vlocnetpp_core.evaluate import _positive, format_report, parse_lengths, write_outputs
+    from vlocnetpp_core.evaluate import positive_flag, format_report, parse_lengths, write_outputs
 
-    threshold = (_positive(args.threshold_m, "--threshold-m"), _positive(args.threshold_deg, "--threshold-deg"))
+    threshold = (positive_flag(args.threshold_m, "--threshold-m"), positive_flag(args.threshold_deg, "--threshold-deg"))
     thresholds = list(DEFAULT_THRESHOLDS[:1]) + ([threshold] if accuracy_key(*threshold) != accuracy_key(*DEFAULT_THRESHOLDS[0]) else [])
     if not (math.isfinite(args.max_gap_s) and args.max_gap_s > 0):
         raise UserError(f"--max-gap-s must be a positive number of seconds, got {args.max_gap_s}")
