@@ -191,7 +191,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from vlocnetpp_core.evaluate import positive_flag, format_report, parse_lengths, write_outputs
+    from vlocnetpp_core.evaluate import format_report, parse_lengths, positive_flag, write_outputs
 
     threshold = (positive_flag(args.threshold_m, "--threshold-m"), positive_flag(args.threshold_deg, "--threshold-deg"))
     thresholds = list(DEFAULT_THRESHOLDS[:1]) + ([threshold] if accuracy_key(*threshold) != accuracy_key(*DEFAULT_THRESHOLDS[0]) else [])
