@@ -102,6 +102,11 @@ class Compose:
         return f"Compose({self.transforms})"
 
 
+def draw_scale(scale: tuple[float, float], rng: np.random.Generator) -> float:
+    """A factor drawn uniformly from ``scale = (lo, hi)``; ``lo`` without a draw when the range is empty."""
+    return float(rng.uniform(*scale)) if scale[1] > scale[0] else scale[0]
+
+
 @dataclasses.dataclass
 class Resize:
     """Resize to exactly ``size (W, H)`` (the aspect follows ``size``), times a random factor in ``scale``."""
@@ -110,7 +115,7 @@ class Resize:
     scale: tuple[float, float] = (1.0, 1.0)
 
     def __call__(self, clip: Clip, rng: np.random.Generator) -> Clip:
-        s = float(rng.uniform(*self.scale)) if self.scale[1] > self.scale[0] else self.scale[0]
+        s = draw_scale(self.scale, rng)
         w, h = (max(self.size[0], round(self.size[0] * s)), max(self.size[1], round(self.size[1] * s)))
         return [resize_frame(f, w, h) for f in clip]
 
@@ -123,7 +128,7 @@ class ResizeCover:
     scale: tuple[float, float] = (1.0, 1.0)
 
     def __call__(self, clip: Clip, rng: np.random.Generator) -> Clip:
-        s = float(rng.uniform(*self.scale)) if self.scale[1] > self.scale[0] else self.scale[0]
+        s = draw_scale(self.scale, rng)
         h, w = clip[0].image.shape[:2]
         return [resize_frame(f, *cover_size(w, h, self.size, s)) for f in clip]
 
