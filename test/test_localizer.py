@@ -211,3 +211,14 @@ def test_from_checkpoint_errors(tmp_path: Path, checkpoint: Path):
     if not torch.cuda.is_available():
         with pytest.raises(UserError, match="CUDA is not available"):
             Localizer.from_checkpoint(checkpoint, device="cuda")
+
+
+def test_inference_threads_leave_a_core_to_ros():
+    import os
+
+    from vlocnetpp_core.localizer import inference_threads
+
+    assert inference_threads(3) == 3
+    assert inference_threads(0) == max(1, (os.cpu_count() or 1) - 1)
+    with pytest.raises(ValueError):
+        inference_threads(-1)

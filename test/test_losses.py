@@ -8,7 +8,7 @@ import pytest
 import torch
 from model_fixtures import lite, random_clip_batch, single_thread
 
-from vlocnetpp_core.losses import VLocNetLoss, depth_loss, segmentation_loss
+from vlocnetpp_core.losses import VLocNetLoss, depth_loss, pose_errors, segmentation_loss
 from vlocnetpp_core.model import StepOutput, VLocNetPP, trainable_parameters
 
 IDENTITY_Q = [1.0, 0.0, 0.0, 0.0]
@@ -48,6 +48,17 @@ def test_localization_loss_known_values_in_se3_form():
     # s_x = 0, s_q = -3 (paper init): L = L_x + L_q e^3 - 3 + L_x_rel + L_q_rel e^3 - 3
     assert loss.item() == pytest.approx(1.5 + q_err * math.exp(3) - 3 - 3, rel=1e-5)
     assert [n for n, _ in crit.named_parameters()] == ["s_x", "s_q", "s_x_rel", "s_q_rel"]
+
+
+def test_rotation_error_does_not_depend_on_the_quaternion_sign():
+    # Headings of 179 and -179 deg are 2 deg apart; their canonical (w >= 0) quaternions are almost
+    # opposite. The loss must see the 2 deg, not the sign flip.
+    near, far = torch.tensor([yaw(179)]), torch.tensor([yaw(-179)])
+    far = far * torch.sign(far[:, :1])
+    zero = torch.zeros(1, 3)
+    _, q_err = pose_errors(zero, near, zero, far)
+    assert q_err.item() == pytest.approx(2 * math.sin(math.radians(2) / 4), rel=1e-4)
+    assert pose_errors(zero, near, zero, -near)[1].item() == pytest.approx(0.0, abs=1e-7)
 
 
 def test_odometry_loss_skips_the_first_frame_and_uses_its_weights():

@@ -37,6 +37,7 @@ motions accumulated), a random walk; twist = ``odometry_variance / dt^2``, or
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -49,6 +50,7 @@ from vlocnetpp_core import geometry
 from vlocnetpp_core.checkpoint import calibration_variances, checkpoint_paths, load_checkpoint
 from vlocnetpp_core.errors import UserError
 from vlocnetpp_core.intrinsics import Intrinsics
+from vlocnetpp_core.model.fuse import fuse_for_inference
 from vlocnetpp_core.preprocess import FrameError, network_input, to_rgb
 
 BACKENDS = ("torch", "onnx")
@@ -81,6 +83,15 @@ class LocalizerResult:
     seconds: float  # wall time of the step
 
 
+def inference_threads(requested: int = 0) -> int:
+    """CPU threads for inference beside a ROS executor: ``requested``, or with 0 all cores but one
+    (at least 1), so that the DDS and executor threads keep a core and do not stall the model's
+    OpenMP threads (measured in docs/performance.md)."""
+    if requested < 0:
+        raise ValueError(f"threads must be >= 0, got {requested}")
+    return int(requested) or max(1, (os.cpu_count() or 1) - 1)
+
+
 class Localizer:
     """Streaming inference with temporal state. Build with :meth:`from_checkpoint`."""
 
@@ -96,6 +107,8 @@ class Localizer:
         self.model = model.to(self.device).eval()
         self.backend = backend
         self._step_fn = self.model.step
+        if backend == "torch":
+            fuse_for_inference(self.model)  # BatchNorm folded into the convolutions (docs/performance.md)
         if backend == "onnx":
             from vlocnetpp_core.onnx_backend import onnx_step_for
 

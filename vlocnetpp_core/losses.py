@@ -3,7 +3,7 @@
 Per clip of ``T`` frames (``outputs[t]`` are :class:`~vlocnetpp_core.model.StepOutput`):
 
 * ``loc`` (Eq. 3): ``L_Euc + L_Rel``. ``L_Euc = L_x e^{-s_x} + s_x + L_q e^{-s_q} + s_q`` with
-  ``L_x = ||x_t - x^_t||``, ``L_q = ||q_t - q^_t||`` over every frame; ``L_Rel`` (geometric
+  ``L_x = ||x_t - x^_t||``, ``L_q = ||q_t - q^_t||`` (the nearer of ``q^`` and ``-q^``) over every frame; ``L_Rel`` (geometric
   consistency) compares the relative pose of the predicted global poses of frames t-1 and t,
   ``T^_{t-1}^{-1} T^_t`` (SE(3) form, DESIGN section 3), with the ground-truth ``rel_t, rel_q``
   over frames ``1..T-1``, with its own ``s_x_rel, s_q_rel``.
@@ -42,8 +42,15 @@ S_Q_INIT = -3.0
 
 
 def pose_errors(xyz: torch.Tensor, quat: torch.Tensor, t: torch.Tensor, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Mean ``||t - xyz||_2`` and ``||q - quat||_2`` over the batch: ``(..., 3)``, ``(..., 4)`` -> two scalars."""
-    return (t.to(xyz.dtype) - xyz).norm(dim=-1).mean(), (q.to(quat.dtype) - quat).norm(dim=-1).mean()
+    """Mean ``||t - xyz||_2`` and ``min(||q - quat||_2, ||q + quat||_2)`` over the batch: ``(..., 3)``, ``(..., 4)`` -> two scalars.
+
+    ``q`` and ``-q`` are the same rotation. Canonical ``w >= 0`` quaternions jump to the other sign
+    where ``w`` crosses 0 (a camera driving a loop passes such a heading every lap), so the plain
+    difference would ask the network for a discontinuous output there.
+    """
+    q = q.to(quat.dtype)
+    q_err = torch.minimum((q - quat).norm(dim=-1), (q + quat).norm(dim=-1))
+    return (t.to(xyz.dtype) - xyz).norm(dim=-1).mean(), q_err.mean()
 
 
 def weighted(loss: torch.Tensor, s: torch.Tensor) -> torch.Tensor:

@@ -52,7 +52,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     length.add_argument("--steps", type=int, help="optimiser steps to train (total, including resumed ones)")
     length.add_argument("--epochs", type=float, help="epochs over the training clips (default 30)")
     p.add_argument("--init", action="append", default=[], metavar="CHECKPOINT",
-                   help="initialise from a checkpoint; for mtl give each single-task checkpoint (each stream comes from its stage)")
+                   help="initialise from a checkpoint; for mtl give each single-task checkpoint (each stream comes from its stage); for stl-loc an stl-seg checkpoint gives its encoder as the pre-trained backbone")
     p.add_argument("--init-backbone", metavar="FILE", help="standard ResNet-50 state dict (torchvision key names) for every backbone")
     p.add_argument("--resume", action="store_true", help="continue the run in --out exactly where it stopped")
     p.add_argument("--batch-size", type=int, default=32, help="clips per optimiser step, over all ranks (paper: 32)")
@@ -152,7 +152,10 @@ def _load_inits(model, criterion, paths: list[str], stage: str, log) -> list[dic
         src_stage = meta.get("training", {}).get("stage")
         sources.append({"path": str(path), "stage": src_stage})
         own = model.state_dict()
-        if stage == "mtl" and len(paths) > 1:
+        if stage == "stl-loc" and src_stage == "stl-seg":
+            tensors = semantic_encoder_as_global_stream(tensors, own)
+            keep = tensors
+        elif stage == "mtl" and len(paths) > 1:
             keep = {k: v for k, v in tensors.items() if k in own and STREAM_SOURCE.get(stream_of(k)) == src_stage}
         else:
             keep = {k: v for k, v in tensors.items() if k in own}
@@ -171,6 +174,24 @@ def _load_inits(model, criterion, paths: list[str], stage: str, log) -> list[dic
         _passthrough_init(fusion)
         log("init: semantic fusion (Res4c) starts as a pass-through of the global stream")
     return sources
+
+
+def semantic_encoder_as_global_stream(tensors: dict[str, torch.Tensor], own: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """An stl-seg encoder as the pre-trained backbone of stl-loc (our stand-in for ImageNet weights).
+
+    ``semantic.{stem,res2,res3}.*`` -> ``trunk.*`` and ``semantic.{res4,res5}.*`` ->
+    ``global_stream.{res4,res5}.*`` wherever the name and shape match (the multiscale blocks of
+    the AdapNet encoder split their 3x3 convolutions, so those stay freshly initialised).
+    """
+    out = {}
+    for key, value in tensors.items():
+        if not key.startswith("semantic."):
+            continue
+        rest = key.removeprefix("semantic.")
+        target = ("global_stream." if rest.startswith(("res4.", "res5.")) else "trunk.") + rest
+        if target in own and own[target].shape == value.shape:
+            out[target] = value
+    return out
 
 
 @torch.no_grad()
@@ -246,9 +267,11 @@ def run(args: argparse.Namespace) -> int:
 
         log(f"init-backbone: {load_backbone_weights(model, args.init_backbone)}")
     params = list(trainable_parameters(model, args.stage))
-    if args.stage == "stl-vo" and args.init:
-        # Odometry on top of an stl-loc trunk: keep the shared trunk as the global stream learned it,
-        # so that mtl can take the trunk from stl-loc and the odometry stream from stl-vo consistently.
+    frozen_trunk = args.stage == "stl-vo" and bool(args.init)
+    if frozen_trunk:
+        # Odometry on top of an stl-loc trunk: keep the shared trunk as the global stream learned it
+        # (weights and BatchNorm statistics), so that mtl can take the trunk from stl-loc and the
+        # odometry stream from stl-vo consistently.
         trunk = {id(p) for n, p in model.named_parameters() if n.startswith("trunk.")}
         params = [p for p in params if id(p) not in trunk]
     params += list(criterion.parameters())
@@ -310,6 +333,8 @@ def run(args: argparse.Namespace) -> int:
             for batch in loader:
                 t0 = time.perf_counter()
                 net.train()
+                if frozen_trunk:
+                    model.trunk.eval()
                 batch = {k: v.to(device, non_blocking=True) for k, v in batch.items()}
                 outputs = _forward(net, batch, args.stage)
                 loss, parts = criterion(outputs, batch)

@@ -38,7 +38,7 @@ from sensor_msgs.msg import Image
 from std_msgs.msg import Header
 
 from vlocnetpp_core.errors import UserError
-from vlocnetpp_core.localizer import BACKENDS, Localizer
+from vlocnetpp_core.localizer import BACKENDS, Localizer, inference_threads
 from vlocnetpp_ros import conversions
 from vlocnetpp_ros.replay_bridge import _NodeProcess, localizer_command, node_arguments
 
@@ -122,7 +122,8 @@ def measure(checkpoint: str, frames: np.ndarray, repetitions: int, warmup: int, 
     namespace = f"/vlocnetpp_latency_{os.getpid()}"
     start = time.perf_counter()
     argv = localizer_command() + node_arguments(namespace, checkpoint, False, False, 1.0, device)
-    argv += ["-p", f"backend:={backend}", "-p", f"num_threads:={int(num_threads)}"]
+    num_threads = inference_threads(num_threads)  # the node resolves 0 the same way: both sides run alike
+    argv += ["-p", f"backend:={backend}", "-p", f"num_threads:={num_threads}"]
     probe = _Probe(namespace)
     node = _NodeProcess(argv)
     try:
@@ -130,7 +131,7 @@ def measure(checkpoint: str, frames: np.ndarray, repetitions: int, warmup: int, 
             node.check_alive()
             if time.perf_counter() - start > startup_timeout_s:
                 raise UserError(f"the localizer node did not connect within {startup_timeout_s:.0f} s:\n{node.tail()}")
-        localizer = Localizer.from_checkpoint(checkpoint, device=device, num_threads=num_threads or None, backend=backend)
+        localizer = Localizer.from_checkpoint(checkpoint, device=device, num_threads=num_threads, backend=backend)
         startup_s = time.perf_counter() - start
         latency, step = [], []
         for k in range(warmup + repetitions):

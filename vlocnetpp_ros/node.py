@@ -45,7 +45,7 @@ from std_msgs.msg import Header
 
 from vlocnetpp_core.checkpoint import SHIPPED_MODEL, shipped_checkpoint
 from vlocnetpp_core.errors import UserError
-from vlocnetpp_core.localizer import BACKENDS, Localizer
+from vlocnetpp_core.localizer import BACKENDS, Localizer, inference_threads
 from vlocnetpp_core.preprocess import FrameError
 from vlocnetpp_ros import conversions
 from vlocnetpp_ros.diagnostics import NodeStats, ThrottledLog
@@ -69,7 +69,7 @@ PARAMETERS: dict[str, tuple[object, str]] = {
     "max_gap_s": (1.0, "reset the temporal state when consecutive processed frames are further apart than this (seconds)"),
     "publish_segmentation": (True, "publish the class-id mask on vlocnet/segmentation"),
     "device": ("cpu", "torch device: cpu or cuda (cuda:N)"),
-    "num_threads": (0, "torch CPU threads; 0: torch's default"),
+    "num_threads": (0, "CPU inference threads (torch or ONNX Runtime); 0: all cores but one, at least 1"),
     "backend": ("torch", "inference backend: torch, or onnx (ONNX Runtime; NAME.onnx next to the checkpoint or a cached export)"),
 }
 
@@ -86,7 +86,7 @@ def _check_parameters(p: dict) -> None:
     if not p["max_gap_s"] > 0:
         raise UserError(f"parameter max_gap_s must be > 0 seconds, got {p['max_gap_s']}")
     if p["num_threads"] < 0:
-        raise UserError(f"parameter num_threads must be >= 0 (0: torch default), got {p['num_threads']}")
+        raise UserError(f"parameter num_threads must be >= 0 (0: all cores but one), got {p['num_threads']}")
     dev = str(p["device"])
     if not (dev == "cpu" or dev == "cuda" or (dev.startswith("cuda:") and dev[5:].isdigit())):
         raise UserError(f"parameter device must be 'cpu', 'cuda' or 'cuda:N', got {dev!r}")
@@ -107,7 +107,7 @@ class LocalizerNode(Node):
         self.params = p
         _check_parameters(p)
         checkpoint = Path(p["checkpoint"]) if p["checkpoint"] else default_checkpoint()
-        self.localizer = Localizer.from_checkpoint(checkpoint, device=p["device"], max_gap_s=p["max_gap_s"], num_threads=p["num_threads"] or None,
+        self.localizer = Localizer.from_checkpoint(checkpoint, device=p["device"], max_gap_s=p["max_gap_s"], num_threads=inference_threads(p["num_threads"]),
                                                    backend=p["backend"])
         w, h = self.localizer.input_size
         self.stats = NodeStats(info={"checkpoint": str(checkpoint), "device": str(p["device"]), "backend": p["backend"], "input_size": f"{w}x{h}"})
