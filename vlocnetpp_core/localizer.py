@@ -50,7 +50,6 @@ from vlocnetpp_core import geometry
 from vlocnetpp_core.checkpoint import calibration_variances, checkpoint_paths, load_checkpoint
 from vlocnetpp_core.errors import UserError
 from vlocnetpp_core.intrinsics import Intrinsics
-from vlocnetpp_core.model.fuse import fuse_for_inference
 from vlocnetpp_core.preprocess import FrameError, network_input, to_rgb
 
 BACKENDS = ("torch", "onnx")
@@ -107,8 +106,6 @@ class Localizer:
         self.model = model.to(self.device).eval()
         self.backend = backend
         self._step_fn = self.model.step
-        if backend == "torch":
-            fuse_for_inference(self.model)  # BatchNorm folded into the convolutions (docs/performance.md)
         if backend == "onnx":
             from vlocnetpp_core.onnx_backend import onnx_step_for
 

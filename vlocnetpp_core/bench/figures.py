@@ -48,8 +48,7 @@ def synth_frames(count: int, size: tuple[int, int], scene: str = "campus", seed:
 def paper_step(config: str, input_size: tuple[int, int] | None, frames: list[np.ndarray], device: str, repetitions: int,
                warmup: int) -> dict:
     """Paper-config streaming step with the cached state vs recomputing the previous frame, and one
-    plain ResNet-50 forward at the same input size; all in ``torch.inference_mode``, eval mode. The
-    VLocNet++ step runs with BatchNorm folded, as the ``Localizer`` runs it; the ResNet-50 is plain.
+    plain ResNet-50 forward at the same input size; all in ``torch.inference_mode``, eval mode.
 
     "Recompute" is what a network without the cache does for frame t: a first-frame step on frame
     t-1 (which yields its Res5a, odometry Res4 and semantic Res4f/Res5c; its heads and decoder
@@ -57,14 +56,13 @@ def paper_step(config: str, input_size: tuple[int, int] | None, frames: list[np.
     """
     from vlocnetpp_core.bench.resnet50 import ResNet50
     from vlocnetpp_core.model import VLocNetPP, load_model_config
-    from vlocnetpp_core.model.fuse import fuse_for_inference
 
     cfg = load_model_config(config)
     if input_size is not None:
         cfg = dataclasses.replace(cfg, input_size=tuple(input_size))
     W, H = cfg.input_size
     torch.manual_seed(0)
-    model = fuse_for_inference(VLocNetPP(cfg).eval()).to(device)  # as the Localizer runs it
+    model = VLocNetPP(cfg).eval().to(device)
     resnet = ResNet50().eval().to(device)
     prev, cur = (_image_tensor(f, (W, H), device) for f in (frames[0], frames[1]))
     K = torch.tensor([[[0.55 * W, 0.0, (W - 1) / 2], [0.0, 0.55 * W, (H - 1) / 2], [0.0, 0.0, 1.0]]], device=device)
