@@ -153,8 +153,7 @@ def _load_inits(model, criterion, paths: list[str], stage: str, log) -> list[dic
         sources.append({"path": str(path), "stage": src_stage})
         own = model.state_dict()
         if stage == "stl-loc" and src_stage == "stl-seg":
-            tensors = semantic_encoder_as_global_stream(tensors, own)
-            keep = tensors
+            keep = semantic_encoder_as_global_stream(tensors, own)
         elif stage == "mtl" and len(paths) > 1:
             keep = {k: v for k, v in tensors.items() if k in own and STREAM_SOURCE.get(stream_of(k)) == src_stage}
         else:
