@@ -48,6 +48,9 @@ def test_localization_loss_known_values_in_se3_form():
     # s_x = 0, s_q = -3 (paper init): L = L_x + L_q e^3 - 3 + L_x_rel + L_q_rel e^3 - 3
     assert loss.item() == pytest.approx(1.5 + q_err * math.exp(3) - 3 - 3, rel=1e-5)
     assert [n for n, _ in crit.named_parameters()] == ["s_x", "s_q", "s_x_rel", "s_q_rel"]
+    # s_q_init = 0 (train --s-q-init 0): both rotation terms enter unweighted
+    loss0, _ = VLocNetLoss("stl-loc", s_q_init=0.0)(outputs, batch)
+    assert loss0.item() == pytest.approx(1.5 + q_err, rel=1e-5)
 
 
 def test_rotation_error_does_not_depend_on_the_quaternion_sign():

@@ -13,7 +13,7 @@ Per clip of ``T`` frames (``outputs[t]`` are :class:`~vlocnetpp_core.model.StepO
 * ``depth``: L1 between log depths over pixels with ground-truth depth ``> 0`` (finite), on the
   depth head that warping uses; it belongs to the ``seg`` task (``stl-seg`` trains the head).
 
-All ``s_x`` are initialised to 0 and all ``s_q`` to -3 (paper). With several tasks (``mtl``)
+All ``s_x`` are initialised to 0 and all ``s_q`` to -3 (paper; ``s_q_init`` changes the latter). With several tasks (``mtl``)
 the learned multitask weighting of Eq. 6 applies: ``L e^{-s} + s`` per task. For ``loc`` and
 ``vo`` the task weight of Eq. 6 is folded into their component weights (``e^{-s_loc} e^{-s_x}``
 is one free weight): multiplying a loss that already holds learned weights by ``e^{-s_loc}``
@@ -86,6 +86,7 @@ class VLocNetLoss(nn.Module):
         learned_weighting: learned Eq. 6 weights for ``seg`` and ``depth``; default: when more
             than one task is trained (``mtl``). Single-task ``seg`` sums ``L_seg + L_depth``.
         depth: whether the model has a depth head to supervise (config ``warping``).
+        s_q_init: initial value of every rotation weight ``s_q`` (paper: -3; see ``train --s-q-init``).
 
     ``forward(outputs, batch)`` takes the ``T`` step outputs of a clip and the batch dict of
     ``ClipDataset`` (``t, q, rel_t, rel_q (B, T, 3|4)``, ``labels (B, T, H, W)``,
@@ -94,7 +95,8 @@ class VLocNetLoss(nn.Module):
     losses (``loc``, ``vo``), detached.
     """
 
-    def __init__(self, tasks: str | Iterable[str] = TASKS, learned_weighting: bool | None = None, depth: bool = True):
+    def __init__(self, tasks: str | Iterable[str] = TASKS, learned_weighting: bool | None = None, depth: bool = True,
+                 s_q_init: float = S_Q_INIT):
         super().__init__()
         if isinstance(tasks, str):
             if tasks not in STAGE_TASKS:
@@ -110,10 +112,10 @@ class VLocNetLoss(nn.Module):
             return nn.Parameter(torch.tensor(value))
 
         if "loc" in self.tasks:
-            self.s_x, self.s_q = s(S_X_INIT), s(S_Q_INIT)
-            self.s_x_rel, self.s_q_rel = s(S_X_INIT), s(S_Q_INIT)
+            self.s_x, self.s_q = s(S_X_INIT), s(s_q_init)
+            self.s_x_rel, self.s_q_rel = s(S_X_INIT), s(s_q_init)
         if "vo" in self.tasks:
-            self.s_x_vo, self.s_q_vo = s(S_X_INIT), s(S_Q_INIT)
+            self.s_x_vo, self.s_q_vo = s(S_X_INIT), s(s_q_init)
         if "seg" in self.tasks and self.learned_weighting:
             self.s_seg = s(0.0)
             if self.depth:

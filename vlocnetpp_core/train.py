@@ -35,6 +35,7 @@ import torch
 import torch.distributed as dist
 
 from vlocnetpp_core.errors import UserError
+from vlocnetpp_core.losses import S_Q_INIT
 from vlocnetpp_core.model.stages import STAGE_TASKS, STAGES
 
 DEFAULT_LR = {"stl-loc": 1e-3, "stl-vo": 1e-3, "stl-seg": 1e-3, "mtl": 1e-4}
@@ -58,6 +59,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--batch-size", type=int, default=32, help="clips per optimiser step, over all ranks (paper: 32)")
     p.add_argument("--clip-len", type=int, default=3, help="frames per training clip, unrolled through the network (default 3)")
     p.add_argument("--lr", type=float, help="learning rate (default: 1e-3 single-task, 1e-4 mtl, as in the paper)")
+    p.add_argument("--s-q-init", type=float, default=S_Q_INIT,
+                   help="initial rotation loss weight s_q (paper: -3, i.e. rotation weighted e^3 = 20x at the start); "
+                        "0 lets a global stream trained from scratch leave the predict-the-mean plateau (docs/training.md)")
     p.add_argument("--intrinsics", help="fx,fy,cx,cy of the dataset images (default: the reader's)")
     p.add_argument("--val-data", help="validation dataset folder (default: hold out the last training sequence)")
     p.add_argument("--val-split", default="train", help="split of --val-data to validate on (default train)")
@@ -259,7 +263,7 @@ def run(args: argparse.Namespace) -> int:
     positions = np.array([r.t for r in train_index.records])
     model.set_position_prior(positions.mean(axis=0), np.maximum(positions.std(axis=0), 1.0))
     model.to(device)
-    criterion = VLocNetLoss(args.stage, depth=config.warping).to(device)
+    criterion = VLocNetLoss(args.stage, depth=config.warping, s_q_init=args.s_q_init).to(device)
     sources = _load_inits(model, criterion, args.init, args.stage, log) if args.init else []
     if args.init_backbone:
         from vlocnetpp_core.model import load_backbone_weights
@@ -298,7 +302,7 @@ def run(args: argparse.Namespace) -> int:
     summary = {
         "stage": args.stage, "data": str(args.data), "train_frames": len(train_index), "train_sequences": len(train_index.sequences),
         "train_clips": len(train_clips), "val_frames": len(val_index) if val_index is not None else 0, "clip_len": args.clip_len,
-        "batch_size": args.batch_size, "lr": lr, "world_size": world, "init": sources, "seed": args.seed,
+        "batch_size": args.batch_size, "lr": lr, "s_q_init": args.s_q_init, "world_size": world, "init": sources, "seed": args.seed,
     }
 
     def checkpoint_meta(step_now: int, calibration: dict | None) -> dict:
