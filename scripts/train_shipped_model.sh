@@ -20,12 +20,10 @@ fi
 COMMON=(--config lite --data "$DATA" --batch-size 8 --clip-len 3 --workers 1 --no-progress --val-every 250)
 
 # stl-seg first, to SEG_INIT_STEPS: its encoder is the pre-trained backbone of stl-loc (our stand-in
-# for ImageNet weights, which cannot be downloaded here). Then stl-loc from it, and stl-seg
-# continuing to SEG_STEPS, side by side with one thread each. The learning rate is constant and
-# --resume is exact, so stopping stl-seg and resuming it gives the same run as going straight on.
-# stl-loc starts its rotation weight at s_q = 0 instead of the paper's -3 (docs/training.md: with
-# -3 the from-scratch global stream stays at "predict the middle of the campus" here). Its best
-# validation is at step 1000 (the one of 250..1250 with the lowest loss on the held-out loop).
+# for ImageNet weights, which cannot be downloaded here). Then stl-vo, training its own trunk, side
+# by side with the rest of stl-seg (one thread each; the learning rate is constant and --resume is
+# exact, so stopping stl-seg and resuming it gives the same run as going straight on). The odometry
+# stream needs a trunk that learned motion: on the trunk of stl-loc it stayed at "no rotation".
 SEG_INIT_STEPS=${SEG_INIT_STEPS:-750}
 if [ ! -f "$RUN/seg-init/best.safetensors" ]; then
   t=$(stamp)
@@ -34,18 +32,21 @@ if [ ! -f "$RUN/seg-init/best.safetensors" ]; then
   log "stl-seg to step $SEG_INIT_STEPS: $(( $(stamp) - t )) s"
 fi
 t=$(stamp)
-$V train "${COMMON[@]}" --stage stl-loc --out "$RUN/stl-loc" --steps "${LOC_STEPS:-1250}" --threads 1 --s-q-init 0 \
-  --init "$RUN/seg-init/best.safetensors" $(resume_flag "$RUN/stl-loc") > "$RUN/stl-loc.out" 2>&1 &
+$V train "${COMMON[@]}" --stage stl-vo --out "$RUN/stl-vo" --steps "${VO_STEPS:-1500}" --threads 1 $(resume_flag "$RUN/stl-vo") > "$RUN/stl-vo.out" 2>&1 &
 p1=$!
 $V train "${COMMON[@]}" --stage stl-seg --out "$RUN/stl-seg" --steps "${SEG_STEPS:-3600}" --threads 1 --resume >> "$RUN/stl-seg.out" 2>&1 &
 p2=$!
 wait $p1; wait $p2
-log "stl-loc + rest of stl-seg (in parallel): $(( $(stamp) - t )) s"
+log "stl-vo + rest of stl-seg (in parallel): $(( $(stamp) - t )) s"
 
+# stl-loc: the stl-seg encoder's Res4/Res5 as its backbone, the stl-vo trunk (given last, so it wins
+# over the stl-seg stem..Res3), kept frozen. Rotation weight starts at s_q = 0 instead of the
+# paper's -3 (docs/training.md: with -3 the from-scratch global stream stays at "predict the
+# middle of the campus" here).
 t=$(stamp)
-$V train "${COMMON[@]}" --stage stl-vo --out "$RUN/stl-vo" --steps "${VO_STEPS:-2000}" --threads 2 \
-  --init "$RUN/stl-loc/best.safetensors" $(resume_flag "$RUN/stl-vo") > "$RUN/stl-vo.out" 2>&1
-log "stl-vo: $(( $(stamp) - t )) s"
+$V train "${COMMON[@]}" --stage stl-loc --out "$RUN/stl-loc" --steps "${LOC_STEPS:-1250}" --threads 2 --s-q-init 0 \
+  --init "$RUN/seg-init/best.safetensors" --init "$RUN/stl-vo/best.safetensors" $(resume_flag "$RUN/stl-loc") > "$RUN/stl-loc.out" 2>&1
+log "stl-loc: $(( $(stamp) - t )) s"
 
 # mtl: the network assembled from the three single-task checkpoints (each stream from its stage,
 # the new Res4c fusion as a pass-through). MTL_STEPS=0 is what ships: fine-tuning all streams

@@ -107,6 +107,20 @@ def test_stl_vo_on_stl_loc_keeps_the_trunk_and_its_statistics(stage_runs):
     assert any(not torch.equal(loc[k], vo[k]) for k in loc if k.startswith("odometry."))
 
 
+def test_stl_loc_on_stl_vo_keeps_the_odometry_trunk(tiny, stage_runs, tmp_path):
+    from vlocnetpp_core.checkpoint import read_checkpoint_tensors
+
+    data, config = tiny
+    train(data, config, tmp_path / "loc", "stl-loc", 4, "--init", str(stage_runs["stl-vo"] / "last.safetensors"))
+    vo = read_checkpoint_tensors(stage_runs["stl-vo"] / "last")[0]
+    loc = read_checkpoint_tensors(tmp_path / "loc" / "last")[0]
+    trunk = [k for k in loc if k.startswith("trunk.")]
+    assert any(k.endswith("running_mean") for k in trunk)
+    assert all(torch.equal(loc[k], vo[k]) for k in trunk), "stl-loc changed the stl-vo trunk"
+    # only the trunk comes from stl-vo: the global stream is not stl-vo's untrained one, and it trains
+    assert any(not torch.equal(loc[k], vo[k]) for k in loc if k.startswith("global_stream."))
+
+
 def test_stl_loc_takes_an_stl_seg_encoder_as_its_backbone(tiny, stage_runs, tmp_path):
     from vlocnetpp_core.checkpoint import read_checkpoint_tensors
 

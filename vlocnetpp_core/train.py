@@ -53,7 +53,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     length.add_argument("--steps", type=int, help="optimiser steps to train (total, including resumed ones)")
     length.add_argument("--epochs", type=float, help="epochs over the training clips (default 30)")
     p.add_argument("--init", action="append", default=[], metavar="CHECKPOINT",
-                   help="initialise from a checkpoint; for mtl give each single-task checkpoint (each stream comes from its stage); for stl-loc an stl-seg checkpoint gives its encoder as the pre-trained backbone")
+                   help="initialise from a checkpoint (a later one wins where they overlap); for mtl give each single-task checkpoint (each stream comes from its stage); "
+                        "for stl-loc an stl-seg checkpoint gives its encoder as the pre-trained backbone, an stl-vo checkpoint its trunk, kept frozen")
     p.add_argument("--init-backbone", metavar="FILE", help="standard ResNet-50 state dict (torchvision key names) for every backbone")
     p.add_argument("--resume", action="store_true", help="continue the run in --out exactly where it stopped")
     p.add_argument("--batch-size", type=int, default=32, help="clips per optimiser step, over all ranks (paper: 32)")
@@ -158,6 +159,8 @@ def _load_inits(model, criterion, paths: list[str], stage: str, log) -> list[dic
         own = model.state_dict()
         if stage == "stl-loc" and src_stage == "stl-seg":
             keep = semantic_encoder_as_global_stream(tensors, own)
+        elif stage == "stl-loc" and src_stage == "stl-vo":
+            keep = {k: v for k, v in tensors.items() if k.startswith("trunk.")}
         elif stage == "mtl" and len(paths) > 1:
             keep = {k: v for k, v in tensors.items() if k in own and STREAM_SOURCE.get(stream_of(k)) == src_stage}
         else:
@@ -270,11 +273,12 @@ def run(args: argparse.Namespace) -> int:
 
         log(f"init-backbone: {load_backbone_weights(model, args.init_backbone)}")
     params = list(trainable_parameters(model, args.stage))
-    frozen_trunk = args.stage == "stl-vo" and bool(args.init)
+    frozen_trunk = (args.stage == "stl-vo" and bool(args.init)) or (
+        args.stage == "stl-loc" and any(src["stage"] == "stl-vo" for src in sources))
     if frozen_trunk:
-        # Odometry on top of an stl-loc trunk: keep the shared trunk as the global stream learned it
-        # (weights and BatchNorm statistics), so that mtl can take the trunk from stl-loc and the
-        # odometry stream from stl-vo consistently.
+        # One pose stream on top of the other's trunk (stl-vo on stl-loc, or stl-loc on stl-vo):
+        # keep the shared trunk as the first stage learned it (weights and BatchNorm statistics),
+        # so that mtl can combine the two streams consistently.
         trunk = {id(p) for n, p in model.named_parameters() if n.startswith("trunk.")}
         params = [p for p in params if id(p) not in trunk]
     params += list(criterion.parameters())
