@@ -95,30 +95,27 @@ def test_stage_checkpoints_have_sidecar_and_calibration(stage_runs):
     assert meta["calibration"]["odometry_variance"] != list(DEFAULT_ODOMETRY_VARIANCE)
 
 
-def test_stl_vo_on_stl_loc_keeps_the_trunk_and_its_statistics(stage_runs):
+def assert_second_stage_kept_the_trunk(first: Path, second: Path, own_stream: str) -> None:
+    """The second pose stage has the first one's trunk (weights and BatchNorm statistics) and trained its own stream."""
     from vlocnetpp_core.checkpoint import read_checkpoint_tensors
 
-    loc = read_checkpoint_tensors(stage_runs["stl-loc"] / "last")[0]
-    vo = read_checkpoint_tensors(stage_runs["stl-vo"] / "last")[0]
-    trunk = [k for k in loc if k.startswith("trunk.")]
+    a, b = read_checkpoint_tensors(first / "last")[0], read_checkpoint_tensors(second / "last")[0]
+    trunk = [k for k in a if k.startswith("trunk.")]
     assert any(k.endswith("running_mean") for k in trunk)
-    changed = [k for k in trunk if not torch.equal(loc[k], vo[k])]
-    assert not changed, f"stl-vo changed the stl-loc trunk: {changed[:3]}"
-    assert any(not torch.equal(loc[k], vo[k]) for k in loc if k.startswith("odometry."))
+    changed = [k for k in trunk if not torch.equal(a[k], b[k])]
+    assert not changed, f"{second.name} changed the trunk of {first.name}: {changed[:3]}"
+    assert any(not torch.equal(a[k], b[k]) for k in a if k.startswith(own_stream + "."))
+
+
+def test_stl_vo_on_stl_loc_keeps_the_trunk_and_its_statistics(stage_runs):
+    assert_second_stage_kept_the_trunk(stage_runs["stl-loc"], stage_runs["stl-vo"], "odometry")
 
 
 def test_stl_loc_on_stl_vo_keeps_the_odometry_trunk(tiny, stage_runs, tmp_path):
-    from vlocnetpp_core.checkpoint import read_checkpoint_tensors
-
+    # only the trunk comes from stl-vo: its untrained global stream does not, and stl-loc trains its own
     data, config = tiny
-    train(data, config, tmp_path / "loc", "stl-loc", 4, "--init", str(stage_runs["stl-vo"] / "last.safetensors"))
-    vo = read_checkpoint_tensors(stage_runs["stl-vo"] / "last")[0]
-    loc = read_checkpoint_tensors(tmp_path / "loc" / "last")[0]
-    trunk = [k for k in loc if k.startswith("trunk.")]
-    assert any(k.endswith("running_mean") for k in trunk)
-    assert all(torch.equal(loc[k], vo[k]) for k in trunk), "stl-loc changed the stl-vo trunk"
-    # only the trunk comes from stl-vo: the global stream is not stl-vo's untrained one, and it trains
-    assert any(not torch.equal(loc[k], vo[k]) for k in loc if k.startswith("global_stream."))
+    train(data, config, tmp_path / "stl-loc", "stl-loc", 4, "--init", str(stage_runs["stl-vo"] / "last.safetensors"))
+    assert_second_stage_kept_the_trunk(stage_runs["stl-vo"], tmp_path / "stl-loc", "global_stream")
 
 
 def test_stl_loc_takes_an_stl_seg_encoder_as_its_backbone(tiny, stage_runs, tmp_path):
