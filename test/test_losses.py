@@ -8,7 +8,7 @@ import pytest
 import torch
 from model_fixtures import lite, random_clip_batch, single_thread
 
-from vlocnetpp_core.losses import VLocNetLoss, depth_loss, pose_errors, segmentation_loss
+from vlocnetpp_core.losses import VLocNetLoss, depth_loss, pose_errors, segmentation_loss, selection_score
 from vlocnetpp_core.model import StepOutput, VLocNetPP, trainable_parameters
 
 IDENTITY_Q = [1.0, 0.0, 0.0, 0.0]
@@ -152,3 +152,20 @@ def test_optimiser_steps_drive_every_task_loss_down():
     for k in keys:
         assert last[k] < 0.5 * first[k], (k, first[k], last[k])
     assert crit.s_seg.item() < 0  # the learned weight follows the shrinking loss
+
+
+def test_selection_score_ranks_by_errors_not_by_the_learned_weighted_loss():
+    # Validations of a real stl-loc run (runs/v3/exp-loc-on-vo, steps 250 and 1250): the loss fell
+    # because s_x grew, while the position and heading errors grew. The later one must rank worse.
+    first = {"loss": 24.28, "x": 27.90, "q": 0.627, "x_rel": 1.43, "q_rel": 0.143, "loc": 24.28}
+    later = {"loss": 19.88, "x": 38.55, "q": 0.841, "x_rel": 3.28, "q_rel": 0.166, "loc": 19.88}
+    assert later["loss"] < first["loss"]
+    assert selection_score(first, first) == pytest.approx(1.0)
+    assert selection_score(later, first) == pytest.approx((38.55 / 27.90 + 0.841 / 0.627) / 2)
+    # The tasks count alike whatever their units: halving the odometry rotation error is worth as much
+    # as halving its translation error; the consistency term alone does not move the score.
+    ref = {"x_vo": 0.2, "q_vo": 0.02, "seg": 1.5}
+    assert selection_score({**ref, "x_vo": 0.1}, ref) == pytest.approx(selection_score({**ref, "q_vo": 0.01}, ref))
+    assert selection_score({**first, "x_rel": 0.1}, first) == pytest.approx(1.0)
+    with pytest.raises(ValueError, match="no metric term"):
+        selection_score({"loss": 1.0}, {"loss": 2.0})

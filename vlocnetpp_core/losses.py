@@ -53,6 +53,26 @@ def pose_errors(xyz: torch.Tensor, quat: torch.Tensor, t: torch.Tensor, q: torch
     return (t.to(xyz.dtype) - xyz).norm(dim=-1).mean(), q_err.mean()
 
 
+METRIC_TERMS = ("x", "q", "x_vo", "q_vo", "seg")
+"""The errors that stand for the paper's metrics (global pose, odometry, segmentation): what
+checkpoint selection compares. ``x_rel``/``q_rel`` (a consistency regulariser that a network
+predicting one constant pose would minimise) and ``depth`` (an aid to warping) are left out."""
+
+
+def selection_score(metrics: dict[str, float], reference: dict[str, float]) -> float:
+    """Mean of ``metrics[k] / reference[k]`` over the :data:`METRIC_TERMS` both hold: lower is better.
+
+    Validation losses with learned weights ``L e^{-s} + s`` cannot rank checkpoints: the ``s``
+    keep moving, so the loss can fall while every error grows. The raw errors have units
+    (metres, quaternion distance, cross-entropy), so each is taken relative to its value at a
+    fixed reference (the run's first validation) and the tasks count alike.
+    """
+    terms = [k for k in METRIC_TERMS if k in metrics and k in reference]
+    if not terms:
+        raise ValueError(f"no metric term ({', '.join(METRIC_TERMS)}) in both {sorted(metrics)} and {sorted(reference)}")
+    return sum(metrics[k] / max(reference[k], 1e-12) for k in terms) / len(terms)
+
+
 def weighted(loss: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
     """Learned homoscedastic weighting ``loss * exp(-s) + s``."""
     return loss * torch.exp(-s) + s

@@ -10,7 +10,9 @@ Adam(0.9, 0.999, 1e-10), lr 1e-3 for single-task stages and 1e-4 for MTL, batch 
 Every step unrolls clips of ``--clip-len`` frames through ``model.forward_clip``, so the
 previous-frame features the network fuses come from its own previous step (never from ground
 truth). Run folder (``--out``): ``last.safetensors/.json`` and ``best.safetensors/.json``
-checkpoints (inference sidecar with calibration), ``train_state.*`` (optimiser, loss weights,
+checkpoints (inference sidecar with calibration; ``best`` has the lowest validation
+:func:`~vlocnetpp_core.losses.selection_score`: the raw pose, odometry and segmentation errors
+relative to the first validation, not the loss with its moving learned weights), ``train_state.*`` (optimiser, loss weights,
 RNG, step) for ``--resume``, ``log.jsonl`` (every loss and the learning rate per step, and each
 validation), all written atomically.
 
@@ -35,7 +37,7 @@ import torch
 import torch.distributed as dist
 
 from vlocnetpp_core.errors import UserError
-from vlocnetpp_core.losses import S_Q_INIT
+from vlocnetpp_core.losses import S_Q_INIT, selection_score
 from vlocnetpp_core.model.stages import STAGE_TASKS, STAGES
 
 DEFAULT_LR = {"stl-loc": 1e-3, "stl-vo": 1e-3, "stl-seg": 1e-3, "mtl": 1e-4}
@@ -292,14 +294,18 @@ def run(args: argparse.Namespace) -> int:
     sampler = EpochSampler(len(train_clips), args.batch_size, args.seed, rank, world)
     steps_per_epoch = sampler.batches_per_epoch
     total = args.steps if args.steps is not None else int(math.ceil((args.epochs or 30.0) * steps_per_epoch))
-    step, best = 0, math.inf
+    step, best, reference = 0, math.inf, None
     if args.resume:
         meta = load_train_state(out, optimizer=optimizer, criterion=criterion)
         from vlocnetpp_core.checkpoint import read_checkpoint_tensors
 
         tensors, _ = read_checkpoint_tensors(out / "last.safetensors")
         model.load_state_dict({k: v.to(device) for k, v in tensors.items()})
-        step, best = int(meta["step"]), float(meta.get("best", math.inf))
+        step, reference = int(meta["step"]), meta.get("best_reference")
+        if reference is None and val_clips is not None:
+            best = math.inf  # a run from before the selection score ranked by validation loss: rank anew
+        else:
+            best = float(meta.get("best", math.inf))
         log(f"resumed at step {step}")
     net = torch.nn.parallel.DistributedDataParallel(model, find_unused_parameters=True) if distributed else model
 
@@ -319,7 +325,7 @@ def run(args: argparse.Namespace) -> int:
         save_checkpoint(out / "last", model, checkpoint_meta(step_now, calibration))
         if is_best:
             save_checkpoint(out / "best", model, checkpoint_meta(step_now, calibration))
-        save_train_state(out, step=step_now, optimizer=optimizer, criterion=criterion, extra={"best": best, "args": _jsonable_args(args)})
+        save_train_state(out, step=step_now, optimizer=optimizer, criterion=criterion, extra={"best": best, "best_reference": reference, "args": _jsonable_args(args)})
 
     progress = None
     if is_main and not args.no_progress:
@@ -363,7 +369,11 @@ def run(args: argparse.Namespace) -> int:
                         metrics, calibration = validate(model, criterion, val_clips, args.stage, device)
                         logf.write(json.dumps({"step": step, "validation": metrics}) + "\n")
                         log(f"step {step}: validation {json.dumps(metrics)}")
-                    score = metrics["loss"] if metrics else float(loss)
+                    if metrics:
+                        reference = reference or metrics
+                        score = selection_score(metrics, reference)
+                    else:
+                        score = float(loss)
                     is_best = score < best
                     best = min(best, score)
                     if is_main:
