@@ -143,6 +143,35 @@ def test_mtl_from_stage_checkpoints_starts_at_their_losses(tiny, stage_runs, tmp
         assert start < 0.7 * untrained, f"{key}: mtl starts at {start:.3f}, untrained {untrained:.3f}"
 
 
+def test_mtl_assembled_without_steps_is_exactly_its_stages(tiny, stage_runs, tmp_path):
+    # An untrained Res4c fusion (AWF ends in a ReLU) would clip the global stream's signed Res4c
+    # features and change the pose stl-loc learned; a network assembled with no mtl steps leaves it
+    # out, and the single-task stages are built without it, so each stream is exactly its stage's.
+    from vlocnetpp_core.data import ClipDataset, make_transform, open_dataset
+
+    data, config = tiny
+    inits = [a for stage in ("stl-loc", "stl-vo", "stl-seg") for a in ("--init", str(stage_runs[stage] / "last.safetensors"))]
+    train(data, config, tmp_path / "mtl", "mtl", 0, *inits)
+    mtl, meta = load_checkpoint(tmp_path / "mtl" / "last")
+    assert meta["model_config"]["semantic_fusion"] is False and mtl.semantic_fusion is None
+    stages = {stage: load_checkpoint(run / "last")[0] for stage, run in stage_runs.items()}
+    assert all(m.semantic_fusion is None for m in stages.values())
+    batch = ClipDataset(open_dataset(data, "deeploc", "test"), 3, make_transform(False, (64, 48)))[0]
+    state = {name: None for name in ("mtl", *stages)}
+    with torch.inference_mode():
+        for t in range(3):
+            x, K = batch["image"][t : t + 1], batch["K"][t : t + 1]
+            out, state["mtl"] = mtl.step(x, state["mtl"], K)
+            ref = {}
+            for stage, model in stages.items():
+                ref[stage], state[stage] = model.step(x, state[stage], K)
+            torch.testing.assert_close(out.xyz, ref["stl-loc"].xyz, rtol=0, atol=1e-5)
+            torch.testing.assert_close(out.quat, ref["stl-loc"].quat, rtol=0, atol=1e-6)
+            torch.testing.assert_close(out.rel_xyz, ref["stl-vo"].rel_xyz, rtol=0, atol=1e-6)
+            if t == 0:  # later frames warp with the odometry, which stl-seg's own network never trained
+                torch.testing.assert_close(out.seg_logits, ref["stl-seg"].seg_logits, rtol=0, atol=1e-5)
+
+
 def _train_cmd(data: Path, config: Path, out: Path, steps: int) -> list[str]:
     return [sys.executable, "-m", "vlocnetpp_core.train", "--config", str(config), "--data", str(data), "--stage", "mtl",
             "--out", str(out), "--steps", str(steps), "--batch-size", "2", "--clip-len", "2", "--workers", "0",

@@ -24,6 +24,7 @@ clip never straddles ranks); rank 0 alone validates and writes files.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import hashlib
 import json
 import math
@@ -204,10 +205,13 @@ def semantic_encoder_as_global_stream(tensors: dict[str, torch.Tensor], own: dic
 
 @torch.no_grad()
 def _passthrough_init(fusion) -> None:
-    """Start a fusion added to trained streams close to its first input: ``ReLU(z_a + small * z_b)``.
+    """Start a fusion added to trained streams near its first input: ``ReLU(z_a + small * z_b)``.
 
-    The semantic weights are small but non-zero so that both the 1x1 pooling and the per-channel
-    weights receive gradients from the first step (an all-zero branch would never learn).
+    Not an identity: the ReLU clips the negative part of the global stream's pre-activation
+    Res4c features, so mtl training has to adapt to it (and an mtl network assembled with no
+    steps is built without this fusion). The semantic weights are small but non-zero so that
+    both the 1x1 pooling and the per-channel weights receive gradients from the first step (an
+    all-zero branch would never learn).
     """
     w = fusion.pool.weight  # (C_a, C_a + C_b, 1, 1)
     ca = fusion.weight_a.numel()
@@ -252,6 +256,11 @@ def run(args: argparse.Namespace) -> int:
 
     torch.manual_seed(args.seed)
     config = load_model_config(args.config)
+    if config.semantic_fusion and (args.stage != "mtl" or args.steps == 0):
+        # The Res4c AWF ends in a ReLU: untrained, it clips the global stream's (signed, pre-activation)
+        # Res4c features and changes the pose the single-task stage learned. Only mtl training learns it.
+        config = dataclasses.replace(config, semantic_fusion=False)
+        log(f"{args.stage}{' with no steps' if args.stage == 'mtl' else ''}: the network is built without the Res4c semantic fusion, which only mtl training learns")
     size = tuple(config.input_size)
 
     train_index = open_dataset(args.data, args.format, "train", args.intrinsics)
@@ -300,6 +309,8 @@ def run(args: argparse.Namespace) -> int:
         from vlocnetpp_core.checkpoint import read_checkpoint_tensors
 
         tensors, _ = read_checkpoint_tensors(out / "last.safetensors")
+        if model.semantic_fusion is None:  # a run from before single-task stages were built without it
+            tensors = {k: v for k, v in tensors.items() if not k.startswith("semantic_fusion.")}
         model.load_state_dict({k: v.to(device) for k, v in tensors.items()})
         step, reference = int(meta["step"]), meta.get("best_reference")
         if reference is None and val_clips is not None:
