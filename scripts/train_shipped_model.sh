@@ -52,7 +52,7 @@ log "stl-vo + rest of stl-seg (in parallel): $(( $(stamp) - t )) s"
 # paper's -3 (docs/training.md: with -3 the from-scratch global stream stays at "predict the
 # middle of the campus" here). It trains on all 8 loops and validates on the fresh loops above.
 t=$(stamp)
-$V train "${COMMON[@]}" --stage stl-loc --out "$RUN/stl-loc" --steps "${LOC_STEPS:-10000}" --threads 2 --s-q-init 0 \
+$V train "${COMMON[@]}" --stage stl-loc --out "$RUN/stl-loc" --steps "${LOC_STEPS:-6000}" --threads 2 --s-q-init 0 \
   --val-data "$VAL" --val-split test --val-every 500 --workers 2 \
   --init "$RUN/seg-init/best.safetensors" --init "$RUN/stl-vo/best.safetensors" $(resume_flag "$RUN/stl-loc") > "$RUN/stl-loc.out" 2>&1
 log "stl-loc: $(( $(stamp) - t )) s"
