@@ -68,7 +68,7 @@ $V train "${COMMON[@]}" --stage mtl --out "$RUN/mtl" --steps "${MTL_STEPS:-0}" -
   $(resume_flag "$RUN/mtl") > "$RUN/mtl.out" 2>&1
 log "mtl: $(( $(stamp) - t )) s"
 
-# Ship the mtl weights as fp16 (8.9 MB). Covariance calibration: the validation errors of the
+# Ship the mtl weights as fp16 (8.5 MB). Covariance calibration: the validation errors of the
 # single-task stages (pose from stl-loc, odometry from stl-vo) when mtl did not validate.
 .venv/bin/python - "$RUN" <<'PY'
 import json, sys, torch
