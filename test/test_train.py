@@ -55,6 +55,20 @@ def early_late(log: list[dict], key: str, n: int = 15) -> tuple[float, float]:
     return float(np.mean(values[:n])), float(np.mean(values[-n:]))
 
 
+def test_training_clips_pool_frame_strides(tiny):
+    from vlocnetpp_core.data import open_dataset
+    from vlocnetpp_core.train import training_clips
+
+    index = open_dataset(tiny[0], None, "train")  # 3 loops of 10 frames
+    single, pooled = training_clips(index, 2, None), training_clips(index, 2, None, (1, 2))
+    assert (len(single), len(pooled)) == (3 * 9, 3 * 9 + 3 * 8)
+    step = np.median([np.linalg.norm(pooled[i]["rel_t"][1].numpy()) for i in range(len(single))])
+    double = np.median([np.linalg.norm(pooled[i]["rel_t"][1].numpy()) for i in range(len(single), len(pooled))])
+    assert double == pytest.approx(2 * step, rel=0.15)  # the clips of stride 2 span two frames' motion
+    with pytest.raises(SystemExit):
+        cli(["train", "--config", "lite", "--data", str(tiny[0]), "--stage", "stl-vo", "--out", "x", "--frame-strides", "0,1"])
+
+
 STAGE_KEYS = {"stl-loc": "x", "stl-vo": "x_vo", "stl-seg": "seg"}
 
 
@@ -204,6 +218,13 @@ def test_killed_run_resumes_exactly(tiny, tmp_path):
     for step, rec in after.items():
         for key in ("loss", "x", "x_vo", "seg"):
             assert rec[key] == pytest.approx(reference[step][key], rel=1e-6, abs=1e-7), (step, key)
+
+    # A step-down for the last part of the run: --resume --lr applies from the resumed step on.
+    subprocess.run([*_train_cmd(data, config, killed, steps + 2), "--resume", "--lr", "3e-5"], check=True, capture_output=True,
+                   cwd=REPO, timeout=600)
+    lrs = {r["step"]: r["lr"] for r in steps_of(read_log(killed))}
+    assert lrs[steps] == pytest.approx(1e-4)  # the mtl default the run started with
+    assert lrs[steps + 1] == lrs[steps + 2] == pytest.approx(3e-5)
 
 
 def test_torchrun_two_processes_gloo(tiny, tmp_path):

@@ -62,7 +62,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--resume", action="store_true", help="continue the run in --out exactly where it stopped")
     p.add_argument("--batch-size", type=int, default=32, help="clips per optimiser step, over all ranks (paper: 32)")
     p.add_argument("--clip-len", type=int, default=3, help="frames per training clip, unrolled through the network (default 3)")
-    p.add_argument("--lr", type=float, help="learning rate (default: 1e-3 single-task, 1e-4 mtl, as in the paper)")
+    p.add_argument("--frame-strides", type=_strides, default=(1,), metavar="S[,S...]",
+                   help="training clips at each of these frame strides (1: consecutive frames; 2: every other frame, "
+                        "i.e. twice the motion between the frames the network sees), pooled (default 1)")
+    p.add_argument("--lr", type=float,
+                   help="learning rate (default: 1e-3 single-task, 1e-4 mtl, as in the paper; with --resume: the run's, "
+                        "or this one from the resumed step on)")
     p.add_argument("--s-q-init", type=float, default=S_Q_INIT,
                    help="initial rotation loss weight s_q (paper: -3, i.e. rotation weighted e^3 = 20x at the start); "
                         "0 lets a global stream trained from scratch leave the predict-the-mean plateau (docs/training.md)")
@@ -113,8 +118,30 @@ class EpochSampler(torch.utils.data.Sampler):
         return (self.batches_per_epoch - self.skip_batches) * self.per_rank
 
 
+def _strides(text: str) -> tuple[int, ...]:
+    try:
+        strides = tuple(sorted({int(s) for s in text.split(",")}))
+    except ValueError:
+        strides = ()
+    if not strides or min(strides) < 1:
+        raise argparse.ArgumentTypeError(f"expected frame strides >= 1 separated by commas (e.g. 1,2), got {text!r}")
+    return strides
+
+
 def _sample_seed(*parts: int) -> int:
     return int.from_bytes(hashlib.blake2b(repr(parts).encode(), digest_size=8).digest(), "little") >> 2
+
+
+def training_clips(index, clip_len: int, transform, strides: tuple[int, ...] = (1,)) -> torch.utils.data.ConcatDataset:
+    """The ``ClipDataset`` of ``index`` at each frame stride, pooled (item ``i`` as in ``ClipDataset``).
+
+    Stride ``s`` shows the network every ``s``-th frame: ``s`` times the motion between the frames
+    it fuses, as from a faster robot or a slower camera. Odometry trained at one stride learns the
+    training speed rather than the motion (docs/training.md).
+    """
+    from vlocnetpp_core.data import ClipDataset
+
+    return torch.utils.data.ConcatDataset([ClipDataset(index, clip_len, transform, stride=s) for s in strides])
 
 
 class SeededClips(torch.utils.data.Dataset):
@@ -268,7 +295,7 @@ def run(args: argparse.Namespace) -> int:
         val_index = open_dataset(args.val_data, args.format, args.val_split, args.intrinsics)
     else:
         train_index, val_index = _split_validation(train_index)
-    train_clips = ClipDataset(train_index, args.clip_len, make_transform(True, size))
+    train_clips = training_clips(train_index, args.clip_len, make_transform(True, size), args.frame_strides)
     if len(train_clips) == 0:
         raise UserError(f"{args.data}: no training clips of {args.clip_len} frames")
     val_clips = ClipDataset(val_index, args.clip_len, make_transform(False, size)) if val_index is not None else None
@@ -313,6 +340,13 @@ def run(args: argparse.Namespace) -> int:
             tensors = {k: v for k, v in tensors.items() if not k.startswith("semantic_fusion.")}
         model.load_state_dict({k: v.to(device) for k, v in tensors.items()})
         step, reference = int(meta["step"]), meta.get("best_reference")
+        saved_lr = optimizer.param_groups[0]["lr"]
+        if args.lr is None:
+            lr = saved_lr
+        elif args.lr != saved_lr:  # a step-down for the last part of a run: --resume --lr 1e-4
+            for group in optimizer.param_groups:
+                group["lr"] = args.lr
+            log(f"learning rate {saved_lr:g} -> {args.lr:g} from step {step}")
         if reference is None and val_clips is not None:
             best = math.inf  # a run from before the selection score ranked by validation loss: rank anew
         else:
@@ -322,7 +356,7 @@ def run(args: argparse.Namespace) -> int:
 
     summary = {
         "stage": args.stage, "data": str(args.data), "train_frames": len(train_index), "train_sequences": len(train_index.sequences),
-        "train_clips": len(train_clips), "val_frames": len(val_index) if val_index is not None else 0, "clip_len": args.clip_len,
+        "train_clips": len(train_clips), "frame_strides": list(args.frame_strides), "val_frames": len(val_index) if val_index is not None else 0, "clip_len": args.clip_len,
         "batch_size": args.batch_size, "lr": lr, "s_q_init": args.s_q_init, "world_size": world, "init": sources, "seed": args.seed,
     }
 
@@ -345,7 +379,7 @@ def run(args: argparse.Namespace) -> int:
         progress = tqdm(total=total, initial=step, desc=f"train {args.stage}", unit="step", dynamic_ncols=True)
     last_save = time.monotonic()
     calibration = None
-    log(f"{args.stage}: {len(train_clips)} clips, {steps_per_epoch} steps/epoch, {total} steps, lr {lr:g}, batch {args.batch_size}, device {device}")
+    log(f"{args.stage}: {len(train_clips)} clips (frame strides {','.join(map(str, args.frame_strides))}), {steps_per_epoch} steps/epoch, {total} steps, lr {lr:g}, batch {args.batch_size}, device {device}")
     with open(log_path, "a") if is_main else open(os.devnull, "w") as logf:
         while step < total:
             epoch, offset = divmod(step, steps_per_epoch)
