@@ -69,6 +69,12 @@ def test_training_clips_pool_frame_strides(tiny):
         cli(["train", "--config", "lite", "--data", str(tiny[0]), "--stage", "stl-vo", "--out", "x", "--frame-strides", "0,1"])
 
 
+def test_zero_epochs_is_refused_not_thirty(tiny, tmp_path, capsys):
+    out = tmp_path / "run"
+    assert cli(["train", "--config", "lite", "--data", str(tiny[0]), "--stage", "mtl", "--out", str(out), "--epochs", "0"]) != 0
+    assert "--epochs must be > 0" in capsys.readouterr().err and not out.exists()
+
+
 STAGE_KEYS = {"stl-loc": "x", "stl-vo": "x_vo", "stl-seg": "seg"}
 
 

@@ -258,6 +258,8 @@ def run(args: argparse.Namespace) -> int:
     from vlocnetpp_core.model import VLocNetPP, load_model_config, trainable_parameters
     from vlocnetpp_core.train_state import load_train_state, save_train_state
 
+    if args.epochs is not None and args.epochs <= 0:
+        raise UserError(f"--epochs must be > 0, got {args.epochs:g} (--steps 0 assembles mtl from its stages without training)")
     world = int(os.environ.get("WORLD_SIZE", "1"))
     rank = int(os.environ.get("RANK", "0"))
     distributed = world > 1
@@ -329,7 +331,7 @@ def run(args: argparse.Namespace) -> int:
 
     sampler = EpochSampler(len(train_clips), args.batch_size, args.seed, rank, world)
     steps_per_epoch = sampler.batches_per_epoch
-    total = args.steps if args.steps is not None else int(math.ceil((args.epochs or 30.0) * steps_per_epoch))
+    total = args.steps if args.steps is not None else int(math.ceil((30.0 if args.epochs is None else args.epochs) * steps_per_epoch))
     step, best, reference = 0, math.inf, None
     if args.resume:
         meta = load_train_state(out, optimizer=optimizer, criterion=criterion)
