@@ -84,11 +84,13 @@ log "stl-vo with frame strides 1,2: $(( $(stamp) - t )) s"
 
 # mtl: the network assembled from the three single-task checkpoints (each stream exactly its stage's;
 # with no steps it is built without the Res4c semantic fusion, which only mtl training learns: an
-# untrained one clips the global stream's features and changes its pose). MTL_STEPS=0 is what ships: fine-tuning all streams
-# together runs at more than 10 s per step on the 2-core machine, and the 44 steps that fitted
-# (lr 5e-4) made every task slightly worse (docs/training.md). With a GPU, set MTL_STEPS=5000.
+# untrained one clips the global stream's features and changes its pose). MTL_STEPS=0 is what ships:
+# 800 steps of fine-tuning all streams together with the fusion (lr 1e-4, frame strides 1,2, 26 min
+# here) did not beat the assembled network (README, ablation). With a GPU, set MTL_STEPS=5000.
+MTL_STEPS=${MTL_STEPS:-0}; MTL_TRAINING=()
+[ "$MTL_STEPS" -gt 0 ] && MTL_TRAINING=(--frame-strides 1,2 --val-data "$VAL" --val-split test --val-every 200 --workers 2)
 t=$(stamp)
-$V train "${COMMON[@]}" --stage mtl --out "$RUN/mtl" --steps "${MTL_STEPS:-0}" --threads 2 \
+$V train "${COMMON[@]}" --stage mtl --out "$RUN/mtl" --steps "$MTL_STEPS" --threads 2 "${MTL_TRAINING[@]}" \
   --init "$RUN/stl-loc/best.safetensors" --init "$RUN/stl-vo-strides/best.safetensors" --init "$RUN/stl-seg/best.safetensors" \
   $(resume_flag "$RUN/mtl") > "$RUN/mtl.out" 2>&1
 log "mtl: $(( $(stamp) - t )) s"

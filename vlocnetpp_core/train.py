@@ -208,7 +208,7 @@ def _load_inits(model, criterion, paths: list[str], stage: str, log) -> list[dic
     fusion = getattr(model, "semantic_fusion", None)
     if fusion is not None and not any(k.startswith("semantic_fusion.") for k in loaded):
         _passthrough_init(fusion)
-        log("init: semantic fusion (Res4c) starts as a pass-through of the global stream")
+        log("init: semantic fusion (Res4c) starts as ReLU of the global stream's Res4c features (it clips their negative part until trained)")
     return sources
 
 
