@@ -225,6 +225,10 @@ def test_killed_run_resumes_exactly(tiny, tmp_path):
         for key in ("loss", "x", "x_vo", "seg"):
             assert rec[key] == pytest.approx(reference[step][key], rel=1e-6, abs=1e-7), (step, key)
 
+    # Other frame strides would index another clip list from the saved position: refused.
+    other = subprocess.run([*_train_cmd(data, config, killed, steps + 2), "--resume", "--frame-strides", "1,2"], capture_output=True,
+                           text=True, cwd=REPO, timeout=600)
+    assert other.returncode != 0 and "resume it with the same" in other.stderr
     # A step-down for the last part of the run: --resume --lr applies from the resumed step on.
     subprocess.run([*_train_cmd(data, config, killed, steps + 2), "--resume", "--lr", "3e-5"], check=True, capture_output=True,
                    cwd=REPO, timeout=600)

@@ -335,6 +335,10 @@ def run(args: argparse.Namespace) -> int:
     step, best, reference = 0, math.inf, None
     if args.resume:
         meta = load_train_state(out, optimizer=optimizer, criterion=criterion)
+        saved_strides = tuple(meta.get("args", {}).get("frame_strides") or args.frame_strides)  # runs before the flag: unknown
+        if saved_strides != args.frame_strides:  # the saved (epoch, offset) indexes that clip list
+            raise UserError(f"{out}: the run trained with --frame-strides {','.join(map(str, saved_strides))}; "
+                            f"resume it with the same (got {','.join(map(str, args.frame_strides))})")
         from vlocnetpp_core.checkpoint import read_checkpoint_tensors
 
         tensors, _ = read_checkpoint_tensors(out / "last.safetensors")
@@ -503,7 +507,8 @@ def _variance(chunks: list[np.ndarray]) -> list[float] | None:
 
 
 def _jsonable_args(args: argparse.Namespace) -> dict:
-    return {k: v for k, v in vars(args).items() if not k.startswith("_") and isinstance(v, (str, int, float, bool, list, type(None)))}
+    return {k: list(v) if isinstance(v, tuple) else v for k, v in vars(args).items()
+            if not k.startswith("_") and isinstance(v, (str, int, float, bool, list, tuple, type(None)))}
 
 
 def main() -> int:
