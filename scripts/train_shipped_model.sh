@@ -12,6 +12,16 @@ stamp() { date +%s; }
 log() { echo "[$(date +%H:%M:%S)] $*" | tee -a "$RUN/timings.txt"; }
 resume_flag() { [ -f "$1/train_state.json" ] && echo --resume || true; }
 at_step() { [ -f "$1/train_state.json" ] && .venv/bin/python -c 'import json, sys; print(json.load(open(sys.argv[1]))["step"])' "$1/train_state.json" || echo 0; }
+# train_then_step_down OUT STEPS END ARGS...: train to STEPS at the stage's rate, then on to END at 1e-4 (resumable).
+train_then_step_down() {
+  local out=$1 steps=$2 end=$3; shift 3
+  if [ "$(at_step "$out")" -lt "$steps" ]; then
+    $V train "${COMMON[@]}" --out "$out" "$@" --steps "$steps" $(resume_flag "$out") >> "$out.out" 2>&1
+  fi
+  if [ "$(at_step "$out")" -lt "$end" ]; then
+    $V train "${COMMON[@]}" --out "$out" "$@" --steps "$end" --resume --lr 1e-4 >> "$out.out" 2>&1
+  fi
+}
 
 DATA="$RUN/campus"
 if [ ! -d "$DATA" ]; then
@@ -54,15 +64,9 @@ log "stl-vo + rest of stl-seg (in parallel): $(( $(stamp) - t )) s"
 # middle of the campus" here). It trains on all 8 loops and validates on the fresh loops above:
 # LOC_STEPS at lr 1e-3, then LOC_LOW_STEPS more at 1e-4 (its training error had stopped falling).
 LOC_STEPS=${LOC_STEPS:-6000}; LOC_END=$(( LOC_STEPS + ${LOC_LOW_STEPS:-2000} ))
-LOC=(--stage stl-loc --out "$RUN/stl-loc" --threads 2 --s-q-init 0 --val-data "$VAL" --val-split test --val-every 500 --workers 2
-     --init "$RUN/seg-init/best.safetensors" --init "$RUN/stl-vo/best.safetensors")
 t=$(stamp)
-if [ "$(at_step "$RUN/stl-loc")" -lt "$LOC_STEPS" ]; then
-  $V train "${COMMON[@]}" "${LOC[@]}" --steps "$LOC_STEPS" $(resume_flag "$RUN/stl-loc") >> "$RUN/stl-loc.out" 2>&1
-fi
-if [ "$(at_step "$RUN/stl-loc")" -lt "$LOC_END" ]; then
-  $V train "${COMMON[@]}" "${LOC[@]}" --steps "$LOC_END" --resume --lr 1e-4 >> "$RUN/stl-loc.out" 2>&1
-fi
+train_then_step_down "$RUN/stl-loc" "$LOC_STEPS" "$LOC_END" --stage stl-loc --threads 2 --s-q-init 0 --val-data "$VAL" \
+  --val-split test --val-every 500 --workers 2 --init "$RUN/seg-init/best.safetensors" --init "$RUN/stl-vo/best.safetensors"
 log "stl-loc: $(( $(stamp) - t )) s"
 
 # stl-vo, second part: the odometry stream on its own trunk, now frozen (stl-loc sits on it), with
@@ -71,15 +75,9 @@ log "stl-loc: $(( $(stamp) - t )) s"
 # had learned the training speed instead of the motion (docs/training.md). Validated on the fresh
 # loops; VO2_STEPS at lr 1e-3, then VO2_LOW_STEPS more at 1e-4.
 VO2_STEPS=${VO2_STEPS:-1500}; VO2_END=$(( VO2_STEPS + ${VO2_LOW_STEPS:-1500} ))
-VO2=(--stage stl-vo --out "$RUN/stl-vo-strides" --threads 2 --frame-strides 1,2 --val-data "$VAL" --val-split test
-     --init "$RUN/stl-vo/best.safetensors")
 t=$(stamp)
-if [ "$(at_step "$RUN/stl-vo-strides")" -lt "$VO2_STEPS" ]; then
-  $V train "${COMMON[@]}" "${VO2[@]}" --steps "$VO2_STEPS" $(resume_flag "$RUN/stl-vo-strides") >> "$RUN/stl-vo-strides.out" 2>&1
-fi
-if [ "$(at_step "$RUN/stl-vo-strides")" -lt "$VO2_END" ]; then
-  $V train "${COMMON[@]}" "${VO2[@]}" --steps "$VO2_END" --resume --lr 1e-4 >> "$RUN/stl-vo-strides.out" 2>&1
-fi
+train_then_step_down "$RUN/stl-vo-strides" "$VO2_STEPS" "$VO2_END" --stage stl-vo --threads 2 --frame-strides 1,2 \
+  --val-data "$VAL" --val-split test --init "$RUN/stl-vo/best.safetensors"
 log "stl-vo with frame strides 1,2: $(( $(stamp) - t )) s"
 
 # mtl: the network assembled from the three single-task checkpoints (each stream exactly its stage's;
