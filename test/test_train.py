@@ -154,6 +154,8 @@ def test_mtl_from_stage_checkpoints_starts_at_their_losses(tiny, stage_runs, tmp
     data, config = tiny
     inits = [a for stage in ("stl-loc", "stl-vo", "stl-seg") for a in ("--init", str(stage_runs[stage] / "last.safetensors"))]
     mtl = steps_of(train(data, config, tmp_path / "mtl", "mtl", 8, *inits))
+    # both pose streams learned on the trunk of stl-loc (stl-vo kept it frozen): mtl keeps it too
+    assert_second_stage_kept_the_trunk(stage_runs["stl-loc"], tmp_path / "mtl", "global_stream")
     fresh = steps_of(train(data, config, tmp_path / "fresh", "mtl", 8))
     for stage, key in STAGE_KEYS.items():
         stage_late = early_late(read_log(stage_runs[stage]), key)[1]
@@ -161,6 +163,36 @@ def test_mtl_from_stage_checkpoints_starts_at_their_losses(tiny, stage_runs, tmp
         untrained = float(np.mean([r[key] for r in fresh]))
         assert start < 2.0 * stage_late + 0.05, f"{key}: mtl starts at {start:.3f}, stage ended at {stage_late:.3f}"
         assert start < 0.7 * untrained, f"{key}: mtl starts at {start:.3f}, untrained {untrained:.3f}"
+
+
+def test_mtl_semantic_fusion_starts_as_an_identity(tiny, stage_runs):
+    # The Res4c AWF ends in a ReLU and the global stream's Res4c features are signed: added to
+    # trained streams, it starts shifted past the ReLU with the shift taken off by the BatchNorms
+    # that read it, so mtl training starts from exactly the stl-loc poses.
+    from vlocnetpp_core.data import ClipDataset, make_transform, open_dataset
+    from vlocnetpp_core.losses import VLocNetLoss
+    from vlocnetpp_core.model import VLocNetPP
+    from vlocnetpp_core.train import _load_inits
+
+    data, config = tiny
+    model = VLocNetPP(load_model_config(config))
+    assert model.semantic_fusion is not None
+    paths = [stage_runs[stage] / "last.safetensors" for stage in ("stl-loc", "stl-vo", "stl-seg")]
+    messages: list[str] = []
+    _load_inits(model, VLocNetLoss("mtl"), paths, "mtl", messages.append)
+    assert any("identity" in m for m in messages)
+    stl_loc = load_checkpoint(stage_runs["stl-loc"] / "last")[0]
+    model.eval()
+    batch = ClipDataset(open_dataset(data, "deeploc", "test"), 3, make_transform(False, (64, 48)))[0]
+    state = ref_state = None
+    with torch.inference_mode():
+        for t in range(3):
+            x, K = batch["image"][t : t + 1], batch["K"][t : t + 1]
+            out, state = model.step(x, state, K)
+            ref, ref_state = stl_loc.step(x, ref_state, K)
+            assert (out.taps["res4c"] < 0).any()  # a plain ReLU would have clipped these
+            torch.testing.assert_close(out.xyz, ref.xyz, rtol=0, atol=1e-4)
+            torch.testing.assert_close(out.quat, ref.quat, rtol=0, atol=1e-5)
 
 
 def test_mtl_assembled_without_steps_is_exactly_its_stages(tiny, stage_runs, tmp_path):

@@ -207,8 +207,8 @@ def _load_inits(model, criterion, paths: list[str], stage: str, log) -> list[dic
         log(f"init: {len(keep)} tensors from {path} (stage {src_stage})")
     fusion = getattr(model, "semantic_fusion", None)
     if fusion is not None and not any(k.startswith("semantic_fusion.") for k in loaded):
-        _passthrough_init(fusion)
-        log("init: semantic fusion (Res4c) starts as ReLU of the global stream's Res4c features (it clips their negative part until trained)")
+        _identity_fusion_init(model)
+        log("init: semantic fusion (Res4c) starts as an identity of the global stream's Res4c features")
     return sources
 
 
@@ -231,21 +231,37 @@ def semantic_encoder_as_global_stream(tensors: dict[str, torch.Tensor], own: dic
 
 
 @torch.no_grad()
-def _passthrough_init(fusion) -> None:
-    """Start a fusion added to trained streams near its first input: ``ReLU(z_a + small * z_b)``.
+def _identity_fusion_init(model, margin: float = 8.0) -> None:
+    """Start the Res4c semantic fusion added to trained streams as an identity of the global stream.
 
-    Not an identity: the ReLU clips the negative part of the global stream's pre-activation
-    Res4c features, so mtl training has to adapt to it (and an mtl network assembled with no
-    steps is built without this fusion). The semantic weights are small but non-zero so that
-    both the 1x1 pooling and the per-channel weights receive gradients from the first step (an
-    all-zero branch would never learn).
+    The AWF is ``ReLU(pool(...) + b)`` and the global stream's Res4c features are signed, so the
+    pooling passes them through shifted by a per-channel ``c >= 0`` that lifts ``margin`` standard
+    deviations below their mean to zero (the statistics of the next block's BatchNorm, which reads
+    them), and every BatchNorm that reads the shifted features takes ``c`` off again: their
+    running means move by ``c`` (in training their batch means do). The shift rides the residual
+    path up to the first block with a projection shortcut (Res5a), whose BatchNorm removes it. So
+    the assembled network's outputs are unchanged wherever the features stay within ``margin``
+    standard deviations. The semantic half of the pooling starts at zero: it still receives
+    gradients (through the non-zero semantic features), and the per-channel semantic weights do
+    from the second step on.
     """
+    fusion, g, k = model.semantic_fusion, model.global_stream, model.config.res4_fusion_block
+    readers = []
+    for block in [*g.res4[k:], *g.res5]:
+        readers.append(block.bn1)
+        if block.shortcut is not None:
+            break
+    else:
+        raise RuntimeError("no block with a projection shortcut after the Res4c fusion")
+    bn = readers[0]
+    c = torch.clamp(margin * torch.sqrt(bn.running_var + bn.eps) - bn.running_mean, min=0.0)
     w = fusion.pool.weight  # (C_a, C_a + C_b, 1, 1)
     ca = fusion.weight_a.numel()
     w.zero_()
     w[:, :ca, 0, 0] = torch.eye(ca, dtype=w.dtype)
-    w[:, ca:].normal_(0.0, 0.01 / math.sqrt(w.shape[1] - ca))
-    fusion.pool.bias.zero_()
+    fusion.pool.bias.copy_(c)
+    for reader in readers:
+        reader.running_mean += c
 
 
 # --------------------------------------------------------------------------- the loop
@@ -286,8 +302,9 @@ def run(args: argparse.Namespace) -> int:
     torch.manual_seed(args.seed)
     config = load_model_config(args.config)
     if config.semantic_fusion and (args.stage != "mtl" or args.steps == 0):
-        # The Res4c AWF ends in a ReLU: untrained, it clips the global stream's (signed, pre-activation)
-        # Res4c features and changes the pose the single-task stage learned. Only mtl training learns it.
+        # Only mtl training learns the Res4c AWF: a stage that does not train it is built without it
+        # (mtl training starts it as an identity, _identity_fusion_init; a plain untrained AWF ends in
+        # a ReLU that clips the global stream's signed Res4c features).
         config = dataclasses.replace(config, semantic_fusion=False)
         log(f"{args.stage}{' with no steps' if args.stage == 'mtl' else ''}: the network is built without the Res4c semantic fusion, which only mtl training learns")
     size = tuple(config.input_size)
@@ -313,12 +330,15 @@ def run(args: argparse.Namespace) -> int:
 
         log(f"init-backbone: {load_backbone_weights(model, args.init_backbone)}")
     params = list(trainable_parameters(model, args.stage))
+    source_stages = {src["stage"] for src in sources}
     frozen_trunk = (args.stage == "stl-vo" and bool(args.init)) or (
-        args.stage == "stl-loc" and any(src["stage"] == "stl-vo" for src in sources))
+        args.stage == "stl-loc" and "stl-vo" in source_stages) or (
+        args.stage == "mtl" and {"stl-loc", "stl-vo"} <= source_stages)
     if frozen_trunk:
         # One pose stream on top of the other's trunk (stl-vo on stl-loc, or stl-loc on stl-vo):
         # keep the shared trunk as the first stage learned it (weights and BatchNorm statistics),
-        # so that mtl can combine the two streams consistently.
+        # so that mtl can combine the two streams consistently; mtl from those two stages keeps
+        # it too (both pose streams learned on it, in eval mode).
         trunk = {id(p) for n, p in model.named_parameters() if n.startswith("trunk.")}
         params = [p for p in params if id(p) not in trunk]
     params += list(criterion.parameters())
