@@ -154,8 +154,6 @@ def test_mtl_from_stage_checkpoints_starts_at_their_losses(tiny, stage_runs, tmp
     data, config = tiny
     inits = [a for stage in ("stl-loc", "stl-vo", "stl-seg") for a in ("--init", str(stage_runs[stage] / "last.safetensors"))]
     mtl = steps_of(train(data, config, tmp_path / "mtl", "mtl", 8, *inits))
-    # both pose streams learned on the trunk of stl-loc (stl-vo kept it frozen): mtl keeps it too
-    assert_second_stage_kept_the_trunk(stage_runs["stl-loc"], tmp_path / "mtl", "global_stream")
     fresh = steps_of(train(data, config, tmp_path / "fresh", "mtl", 8))
     for stage, key in STAGE_KEYS.items():
         stage_late = early_late(read_log(stage_runs[stage]), key)[1]

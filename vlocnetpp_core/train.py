@@ -330,15 +330,13 @@ def run(args: argparse.Namespace) -> int:
 
         log(f"init-backbone: {load_backbone_weights(model, args.init_backbone)}")
     params = list(trainable_parameters(model, args.stage))
-    source_stages = {src["stage"] for src in sources}
     frozen_trunk = (args.stage == "stl-vo" and bool(args.init)) or (
-        args.stage == "stl-loc" and "stl-vo" in source_stages) or (
-        args.stage == "mtl" and {"stl-loc", "stl-vo"} <= source_stages)
+        args.stage == "stl-loc" and any(src["stage"] == "stl-vo" for src in sources))
     if frozen_trunk:
         # One pose stream on top of the other's trunk (stl-vo on stl-loc, or stl-loc on stl-vo):
         # keep the shared trunk as the first stage learned it (weights and BatchNorm statistics),
-        # so that mtl can combine the two streams consistently; mtl from those two stages keeps
-        # it too (both pose streams learned on it, in eval mode).
+        # so that mtl can combine the two streams consistently (mtl then trains it with everything
+        # else: kept frozen too, 800 mtl steps were worse on every metric, README ablation).
         trunk = {id(p) for n, p in model.named_parameters() if n.startswith("trunk.")}
         params = [p for p in params if id(p) not in trunk]
     params += list(criterion.parameters())

@@ -1,0 +1,55 @@
+#!/usr/bin/env bash
+# Scores checkpoints on fresh test loops of the synthetic campus for several visit seeds (the demo's
+# kind of data: 2 loops of 175 frames per seed; seed 0 trains and seed 11 validates the shipped
+# model, so neither may be listed) and prints one markdown table: each seed's metrics and their mean.
+# Usage: bash scripts/ablation.sh [LABEL=]CHECKPOINT...
+#   env SEEDS (default "101 7 23 42"), LOOPS_DIR (default runs/test-loops), OUT (default runs/ablation)
+# Re-runs reuse the rendered loops and the scores already written (delete OUT to score again).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+V=.venv/bin/vlocnetpp
+SEEDS=${SEEDS:-101 7 23 42}
+LOOPS_DIR=${LOOPS_DIR:-runs/test-loops}
+OUT=${OUT:-runs/ablation}
+[ $# -gt 0 ] || { echo "usage: bash scripts/ablation.sh [LABEL=]CHECKPOINT..." >&2; exit 2; }
+mkdir -p "$LOOPS_DIR" "$OUT"
+for seed in $SEEDS; do
+  case $seed in 0|11) echo "seed $seed trained or validated the shipped model: pick another" >&2; exit 2;; esac
+  [ -d "$LOOPS_DIR/seed$seed" ] || { echo "rendering the test loops of visit seed $seed" >&2
+    $V synth "$LOOPS_DIR/seed$seed" --scene campus --seed "$seed" --loops 0 --test-loops 2 --frames-per-loop 175 --no-progress; }
+done
+rows=()
+for arg in "$@"; do
+  label=${arg%%=*}; ckpt=${arg#*=}
+  [ "$label" != "$arg" ] || label=$ckpt
+  [ -f "$ckpt" ] || { echo "no checkpoint $ckpt" >&2; exit 2; }
+  # scores are kept per checkpoint file (path, size and time), so a retrained checkpoint is scored again
+  slug=$(printf '%s' "$ckpt-$(stat -c %s-%Y "$ckpt")" | tr -c 'A-Za-z0-9._-' '_')
+  for seed in $SEEDS; do
+    json="$OUT/$slug.seed$seed.json"
+    if [ ! -f "$json" ]; then
+      echo "scoring $label on seed $seed" >&2
+      $V evaluate --checkpoint "$ckpt" --data "$LOOPS_DIR/seed$seed" --json "$json.tmp" --no-progress > /dev/null && mv "$json.tmp" "$json"
+    fi
+  done
+  rows+=("$label" "$OUT/$slug")
+done
+.venv/bin/python - "$SEEDS" "${rows[@]}" <<'PY'
+import json, sys
+import numpy as np
+
+seeds, args = sys.argv[1].split(), sys.argv[2:]
+cols = [("median t [m]", "pose", "median_translation_m", 1, "{:.1f}"), ("median R [deg]", "pose", "median_rotation_deg", 1, "{:.1f}"),
+        ("< 0.5 m, 5 deg [%]", "pose", "accuracy_0.5m_5deg", 100, "{:.1f}"),
+        ("VO t [%]", "odometry", "translation_error_percent", 1, "{:.1f}"), ("VO R [deg/m]", "odometry", "rotation_error_deg_per_m", 1, "{:.2f}"),
+        ("mIoU [%]", "segmentation", "miou", 100, "{:.1f}")]
+print("| model | seed | " + " | ".join(c[0] for c in cols) + " |")
+print("|---|---|" + "---|" * len(cols))
+for label, prefix in zip(args[::2], args[1::2]):
+    per_seed = [json.load(open(f"{prefix}.seed{s}.json"))["overall"] for s in seeds]
+    values = [[m[group][key] * scale if m.get(group) else float("nan") for _, group, key, scale, _ in cols] for m in per_seed]
+    for seed, v in zip(seeds, values):
+        print(f"| {label} | {seed} | " + " | ".join(c[4].format(x) for c, x in zip(cols, v)) + " |")
+    mean = np.mean(values, axis=0)
+    print(f"| **{label}** | **mean** | " + " | ".join("**" + c[4].format(x) + "**" for c, x in zip(cols, mean)) + " |")
+PY
