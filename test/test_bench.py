@@ -44,7 +44,7 @@ def report(tmp_path_factory) -> dict:
 
 
 def test_quick_json_has_every_figure_with_numbers(report):
-    for key in FIGURES + ("paper_step_ms", "lite_hz_torch", "lite_hz_onnx"):
+    for key in FIGURES + ("paper_step_ms", "lite_hz_torch", "lite_hz_onnx", "mtl_step_over_resnet50_torch", "mtl_step_over_resnet50_onnx"):
         value = report[key]
         assert isinstance(value, (int, float)) and math.isfinite(value) and value > 0, key
     assert set(report["targets"]) == set(TARGETS)
@@ -61,7 +61,10 @@ def test_quick_json_has_every_figure_with_numbers(report):
 def test_ratios_are_the_quotients_of_the_reported_times(report):
     t = report["times_ms"]
     assert report["cached_vs_recompute_speedup"] == pytest.approx(t["paper_step_recompute"] / t["paper_step_cached"], rel=1e-3)
-    assert report["mtl_step_over_resnet50"] == pytest.approx(t["paper_step_cached"] / t["resnet50_forward"], rel=1e-3)
+    assert report["mtl_step_over_resnet50_torch"] == pytest.approx(t["paper_step_cached"] / t["resnet50_forward"], rel=1e-3)
+    assert report["mtl_step_over_resnet50_onnx"] == pytest.approx(t["paper_step_onnx"] / t["resnet50_forward"], rel=1e-3)
+    assert report["mtl_step_over_resnet50"] == min(report["mtl_step_over_resnet50_torch"], report["mtl_step_over_resnet50_onnx"])
+    assert report["paper_step_ms"] == pytest.approx(t["paper_step_cached" if report["paper_backend"] == "torch" else "paper_step_onnx"], rel=1e-3)
     assert report["node_latency_over_step"] == pytest.approx(t["node_latency"] / t["node_bare_step"], rel=1e-3)
     assert report["lite_hz"] == pytest.approx(1000.0 / t[f"lite_step_{report['lite_backend']}"], rel=1e-3)
     assert report["lite_hz"] == max(report["lite_hz_torch"], report["lite_hz_onnx"])

@@ -46,16 +46,21 @@ def synth_frames(count: int, size: tuple[int, int], scene: str = "campus", seed:
 
 
 def paper_step(config: str, input_size: tuple[int, int] | None, frames: list[np.ndarray], device: str, repetitions: int,
-               warmup: int) -> dict:
-    """Paper-config streaming step with the cached state vs recomputing the previous frame, and one
-    plain ResNet-50 forward at the same input size; all in ``torch.inference_mode``, eval mode.
+               warmup: int, workdir: Path, threads: int = 0) -> dict:
+    """Paper-config streaming step with the cached state (torch, and the ONNX Runtime graph of the
+    same weights) vs recomputing the previous frame, and one plain ResNet-50 forward (torch, eager)
+    at the same input size; torch in ``torch.inference_mode``, eval mode.
 
     "Recompute" is what a network without the cache does for frame t: a first-frame step on frame
     t-1 (which yields its Res5a, odometry Res4 and semantic Res4f/Res5c; its heads and decoder
-    are computed too, a few percent of the step) followed by the step on frame t.
+    are computed too, a few percent of the step) followed by the step on frame t. The graph is
+    exported into ``workdir``; where ONNX Runtime cannot run on ``device``, ``paper_step_onnx`` is
+    None and ``onnx_error`` says why.
     """
     from vlocnetpp_core.bench.resnet50 import ResNet50
     from vlocnetpp_core.model import VLocNetPP, load_model_config
+    from vlocnetpp_core.onnx_backend import OnnxStep
+    from vlocnetpp_core.onnx_export import export_step
 
     cfg = load_model_config(config)
     if input_size is not None:
@@ -66,6 +71,10 @@ def paper_step(config: str, input_size: tuple[int, int] | None, frames: list[np.
     resnet = ResNet50().eval().to(device)
     prev, cur = (_image_tensor(f, (W, H), device) for f in (frames[0], frames[1]))
     K = torch.tensor([[[0.55 * W, 0.0, (W - 1) / 2], [0.0, 0.55 * W, (H - 1) / 2], [0.0, 0.0, 1.0]]], device=device)
+    result: dict = {"input_size": [W, H], "paper_step_onnx": None}
+    start = time.perf_counter()
+    graph = export_step(model, workdir / f"{cfg.name}-{W}x{H}.onnx")
+    result["paper_onnx_export"] = time.perf_counter() - start
     with torch.inference_mode():
         _, state = model.step(prev, None, K)
 
@@ -73,10 +82,20 @@ def paper_step(config: str, input_size: tuple[int, int] | None, frames: list[np.
             _, s = model.step(prev, None, K)
             model.step(cur, s, K)
 
-        times = interleaved({"cached": lambda: model.step(cur, state, K), "recompute": recompute, "resnet50": lambda: resnet(cur)},
-                            repetitions, warmup, synchronizer(device))
-    return {"input_size": [W, H], "paper_step_cached": median(times["cached"]), "paper_step_recompute": median(times["recompute"]),
-            "resnet50_forward": median(times["resnet50"])}
+        cases = {"cached": lambda: model.step(cur, state, K), "recompute": recompute, "resnet50": lambda: resnet(cur)}
+        try:
+            onnx_step = OnnxStep(graph, device, threads or None)
+        except UserError as err:
+            result["onnx_error"] = str(err)
+        else:
+            _, onnx_state = onnx_step(prev, None, K)
+            cases["onnx"] = lambda: onnx_step(cur, onnx_state, K)
+        times = interleaved(cases, repetitions, warmup, synchronizer(device))
+    result.update({"paper_step_cached": median(times["cached"]), "paper_step_recompute": median(times["recompute"]),
+                   "resnet50_forward": median(times["resnet50"])})
+    if "onnx" in times:
+        result["paper_step_onnx"] = median(times["onnx"])
+    return result
 
 
 def _image_tensor(rgb: np.ndarray, size: tuple[int, int], device: str) -> torch.Tensor:
