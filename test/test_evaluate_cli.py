@@ -43,7 +43,9 @@ def test_evaluate_writes_report_trajectories_and_plots(evaluated, capsys):
 
     report = json.loads((out / "metrics.json").read_text())
     assert list(report) == ["overall", "per_sequence", "meta"]
-    assert report["meta"] == {"checkpoint": str(tmp / "ckpt" / "lite"), "data": str(tmp / "data"), "split": "test"}
+    assert report["meta"] == {"checkpoint": str(tmp / "ckpt" / "lite"), "data": str(tmp / "data"), "split": "test",
+                              "untrained_tasks": None}  # the sidecar does not say how it was trained
+    assert "note:" not in stdout
     assert list(report["per_sequence"]) == ["seq-00"]
     for part in (report["overall"], report["per_sequence"]["seq-00"]):
         assert list(part) == ["pose", "odometry", "segmentation", "timing"]
@@ -106,3 +108,34 @@ def test_evaluate_missing_checkpoint_is_one_line(evaluated, capsys):
     assert cli.main(argv) == 2
     err = capsys.readouterr().err
     assert "nope.safetensors" in err and "Traceback" not in err
+
+
+def test_evaluate_names_the_tasks_a_checkpoint_was_not_trained_for(evaluated, tmp_path, capsys):
+    """A single-task checkpoint's other columns come from untrained streams: evaluate says which."""
+    from vlocnetpp_core.checkpoint import save_checkpoint
+    from vlocnetpp_core.model import VLocNetPP, load_model_config
+
+    tmp, _, _ = evaluated
+    torch.manual_seed(0)
+    ckpt = save_checkpoint(tmp_path / "stl-vo", VLocNetPP(load_model_config("lite")), {"training": {"stage": "stl-vo", "init": []}})
+    argv = ["evaluate", "--checkpoint", str(ckpt), "--data", str(tmp / "data"), "--no-progress", "--max-frames", "3",
+            "--json", str(tmp_path / "m.json")]
+    assert cli.main(argv) == 0
+    notes = [line for line in capsys.readouterr().out.splitlines() if line.startswith("note:")]
+    assert len(notes) == 1 and "not trained for global pose, segmentation (stage stl-vo" in notes[0]
+    assert json.loads((tmp_path / "m.json").read_text())["meta"]["untrained_tasks"] == ["loc", "seg"]
+
+
+@pytest.mark.parametrize("training, untrained", [
+    ({"stage": "init"}, ["loc", "vo", "seg"]),
+    ({"stage": "stl-seg", "init": []}, ["loc", "vo"]),
+    # stl-loc takes only the trunk of an stl-vo init and the encoder of an stl-seg one (as its global stream)
+    ({"stage": "stl-loc", "init": [{"stage": "stl-seg"}, {"stage": "stl-vo"}]}, ["vo", "seg"]),
+    ({"stage": "stl-vo", "init": [{"stage": "stl-loc"}]}, ["seg"]),  # loaded whole
+    ({"stage": "mtl", "init": []}, []),
+    ({}, None),
+])
+def test_untrained_tasks_from_the_sidecar(training, untrained):
+    from vlocnetpp_core.evaluate import untrained_tasks
+
+    assert untrained_tasks({"training": training}) == untrained

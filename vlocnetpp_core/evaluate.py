@@ -227,6 +227,7 @@ def run(args: argparse.Namespace) -> int:
 
     from vlocnetpp_core.data import open_dataset
     from vlocnetpp_core.localizer import Localizer
+    from vlocnetpp_core.model.stages import TASK_NAMES
 
     index = open_dataset(args.data, args.format, args.split, args.intrinsics)
     if len(index) == 0:
@@ -238,12 +239,26 @@ def run(args: argparse.Namespace) -> int:
     class_names = localizer.class_names if len(localizer.class_names) == localizer.num_classes else CLASS_NAMES[: localizer.num_classes]
 
     report = evaluate_sequences(results, thresholds, lengths, class_names)
-    report["meta"] = {"checkpoint": str(args.checkpoint), "data": str(args.data), "split": args.split}
+    untrained = untrained_tasks(localizer.meta)
+    report["meta"] = {"checkpoint": str(args.checkpoint), "data": str(args.data), "split": args.split, "untrained_tasks": untrained}
     print(format_report(report, {r.name: len(r.stamps) for r in results}))
+    if untrained:
+        print(f"note: {args.checkpoint} was not trained for {', '.join(TASK_NAMES[t] for t in untrained)} (stage "
+              f"{localizer.meta['training'].get('stage')} and its --init checkpoints): those columns are an untrained network's")
     if rejected:
         print("frames rejected by the localizer (left out): " + ", ".join(f"{k} {v}" for k, v in sorted(rejected.items())))
     write_outputs(report, results, class_names, args.json, args.trajectories, args.plots)
     return 0
+
+
+def untrained_tasks(meta: dict) -> list[str] | None:
+    """Tasks (``loc``, ``vo``, ``seg``) the checkpoint with sidecar ``meta`` was not trained for; None when its
+    sidecar does not say how it was trained."""
+    from vlocnetpp_core.model.stages import TASK_NAMES
+    from vlocnetpp_core.train import trained_tasks
+
+    trained = trained_tasks(meta.get("training") or {})
+    return None if trained is None else [t for t in TASK_NAMES if t not in trained]
 
 
 def write_outputs(report: dict, results: list[SequenceResult], class_names: Sequence[str], json_path: str | Path | None = None,

@@ -212,6 +212,25 @@ def _load_inits(model, criterion, paths: list[str], stage: str, log) -> list[dic
     return sources
 
 
+def trained_tasks(training: dict) -> set[str] | None:
+    """The tasks (``loc``, ``vo``, ``seg``) whose streams a checkpoint's weights were trained for, from
+    its sidecar's ``training`` entry: its stage's, plus those of ``--init`` checkpoints that
+    :func:`_load_inits` loads whole (``stl-loc`` takes only the trunk of an ``stl-vo`` init and the
+    encoder of an ``stl-seg`` one, as its own global stream). One level deep: the sidecar records the
+    stages of its inits, not theirs. ``set()`` for a freshly initialised checkpoint, None when no
+    stage is recorded."""
+    stage = training.get("stage")
+    if stage == "init":
+        return set()
+    if stage not in STAGE_TASKS:
+        return None
+    tasks = set(STAGE_TASKS[stage])
+    for source in training.get("init") or []:
+        if not (stage == "stl-loc" and source.get("stage") in ("stl-seg", "stl-vo")):
+            tasks |= set(STAGE_TASKS.get(source.get("stage"), ()))
+    return tasks
+
+
 def semantic_encoder_as_global_stream(tensors: dict[str, torch.Tensor], own: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
     """An stl-seg encoder as the pre-trained backbone of stl-loc (our stand-in for ImageNet weights).
 

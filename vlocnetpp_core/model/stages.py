@@ -20,6 +20,7 @@ STREAMS = ("global", "odometry", "semantic", "depth", "fusion")
 STAGES = ("stl-loc", "stl-vo", "stl-seg", "mtl")
 # Tasks (``VLocNetPP.step(tasks=...)`` and ``VLocNetLoss``) a stage runs.
 STAGE_TASKS: dict[str, tuple[str, ...]] = {"stl-loc": ("loc",), "stl-vo": ("vo",), "stl-seg": ("seg",), "mtl": ("loc", "vo", "seg")}
+TASK_NAMES = {"loc": "global pose", "vo": "odometry", "seg": "segmentation"}
 
 _PREFIX_STREAM = {
     "trunk": "global",
