@@ -133,6 +133,7 @@ def test_evaluate_names_the_tasks_a_checkpoint_was_not_trained_for(evaluated, tm
     ({"stage": "stl-loc", "init": [{"stage": "stl-seg"}, {"stage": "stl-vo"}]}, ["vo", "seg"]),
     ({"stage": "stl-vo", "init": [{"stage": "stl-loc"}]}, ["seg"]),  # loaded whole
     ({"stage": "mtl", "init": []}, []),
+    ({"stage": "mtl", "step": 0, "init": [{"stage": "stl-loc"}, {"stage": "stl-seg"}]}, ["vo"]),  # assembled, no odometry stage
     ({}, None),
 ])
 def test_untrained_tasks_from_the_sidecar(training, untrained):

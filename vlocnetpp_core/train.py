@@ -217,14 +217,14 @@ def trained_tasks(training: dict) -> set[str] | None:
     its sidecar's ``training`` entry: its stage's, plus those of ``--init`` checkpoints that
     :func:`_load_inits` loads whole (``stl-loc`` takes only the trunk of an ``stl-vo`` init and the
     encoder of an ``stl-seg`` one, as its own global stream). One level deep: the sidecar records the
-    stages of its inits, not theirs. ``set()`` for a freshly initialised checkpoint, None when no
-    stage is recorded."""
+    stages of its inits, not theirs. A run of 0 steps (``mtl --steps 0`` assembling the stages) trained
+    nothing itself. ``set()`` for a freshly initialised checkpoint, None when no stage is recorded."""
     stage = training.get("stage")
     if stage == "init":
         return set()
     if stage not in STAGE_TASKS:
         return None
-    tasks = set(STAGE_TASKS[stage])
+    tasks = set(STAGE_TASKS[stage]) if training.get("step", 1) > 0 else set()
     for source in training.get("init") or []:
         if not (stage == "stl-loc" and source.get("stage") in ("stl-seg", "stl-vo")):
             tasks |= set(STAGE_TASKS.get(source.get("stage"), ()))
