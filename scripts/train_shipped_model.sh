@@ -2,16 +2,19 @@
 # Reproduces the model shipped in models/ (vlocnetpp_lite.*): synthetic campus data, the paper's
 # staged schedule (single-task stages, then multitask), then an fp16 copy for the package.
 # Usage: bash scripts/train_shipped_model.sh [RUN_DIR]   (default runs/shipped; resumable: re-run to continue)
+# PYTHON=python3 runs it with another interpreter than .venv's (e.g. on a GPU machine with PyTorch
+# only: PYTHONPATH=. PYTHON=python3 bash scripts/train_shipped_model.sh; see docs/training.md).
 # Times per stage on the 2-core development machine are in docs/training.md.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 RUN=${1:-runs/shipped}
-V=.venv/bin/vlocnetpp
+PY=${PYTHON:-.venv/bin/python}
+V="$PY -m vlocnetpp_core.cli"
 mkdir -p "$RUN"
 stamp() { date +%s; }
 log() { echo "[$(date +%H:%M:%S)] $*" | tee -a "$RUN/timings.txt"; }
 resume_flag() { [ -f "$1/train_state.json" ] && echo --resume || true; }
-at_step() { [ -f "$1/train_state.json" ] && .venv/bin/python -c 'import json, sys; print(json.load(open(sys.argv[1]))["step"])' "$1/train_state.json" || echo 0; }
+at_step() { [ -f "$1/train_state.json" ] && $PY -c 'import json, sys; print(json.load(open(sys.argv[1]))["step"])' "$1/train_state.json" || echo 0; }
 # train_then_step_down OUT STEPS END ARGS...: train to STEPS at the stage's rate, then on to END at 1e-4 (resumable).
 train_then_step_down() {
   local out=$1 steps=$2 end=$3; shift 3
@@ -97,7 +100,7 @@ log "mtl: $(( $(stamp) - t )) s"
 # Ship the mtl weights (its best validation, or the assembled network when MTL_STEPS=0) as fp16
 # (8.9 MB). Covariance calibration: the validation errors of the single-task stages (pose from
 # stl-loc, odometry from stl-vo-strides) when mtl did not validate.
-.venv/bin/python - "$RUN" <<'PY'
+$PY - "$RUN" <<'PY'
 import json, os, sys, torch
 from vlocnetpp_core.checkpoint import load_checkpoint, save_checkpoint
 run = sys.argv[1]

@@ -17,3 +17,14 @@ class DataError(UserError):
         self.line = line
         where = f"{self.path}:{line}" if line is not None else self.path
         super().__init__(f"{where}: {message}")
+
+
+def require(module: str, what: str):
+    """``import module``, or a :class:`UserError` saying that ``what`` needs it (an optional package)."""
+    import importlib
+
+    try:
+        return importlib.import_module(module)
+    except ImportError:
+        raise UserError(f"{what} needs the Python package {module!r}, which is not installed "
+                        f"(it is in requirements.txt)") from None

@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from vlocnetpp_core.errors import DataError, UserError
+from vlocnetpp_core.errors import DataError, UserError, require
 from vlocnetpp_core.model import StepOutput, StreamState
 from vlocnetpp_core.onnx_export import HEAD_OUTPUTS, export_step, read_metadata
 
@@ -45,7 +45,7 @@ class OnnxStep:
     """One ONNX Runtime session of an exported streaming step; call it like ``VLocNetPP.step``."""
 
     def __init__(self, path: str | Path, device: str | torch.device = "cpu", num_threads: int | None = None):
-        import onnxruntime as ort
+        ort = require("onnxruntime", "backend 'onnx'")
 
         self.path = Path(path)
         meta = read_metadata(self.path)
@@ -91,7 +91,7 @@ def _array(t: torch.Tensor) -> np.ndarray:
 
 
 def _providers(device: torch.device) -> list:
-    import onnxruntime as ort
+    ort = require("onnxruntime", "backend 'onnx'")
 
     if device.type == "cpu":
         return ["CPUExecutionProvider"]

@@ -46,7 +46,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from vlocnetpp_core.errors import DataError, UserError
+from vlocnetpp_core.errors import DataError, UserError, require
 
 FORMAT = "vlocnetpp-onnx-step"
 VERSION = 1
@@ -121,7 +121,7 @@ def example_inputs(model: nn.Module, input_size: tuple[int, int] | None = None) 
 
 def export_step(model: nn.Module, out: str | Path, weights_id: str | None = None, input_size: tuple[int, int] | None = None) -> Path:
     """Write the streaming-step graph of ``model`` (eval mode, CPU or GPU) to ``out`` atomically; returns the path."""
-    import onnx
+    onnx = require("onnx", "ONNX export")
 
     out = Path(out)
     model = model.eval()
@@ -161,7 +161,7 @@ def export_checkpoint(checkpoint: str | Path, out: str | Path) -> Path:
 
 def read_metadata(path: str | Path) -> dict[str, str]:
     """The ``metadata_props`` of an exported step graph; :class:`DataError` when it is not one."""
-    import onnx
+    onnx = require("onnx", "ONNX export")
 
     path = Path(path)
     if not path.is_file():

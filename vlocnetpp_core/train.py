@@ -461,7 +461,7 @@ def run(args: argparse.Namespace) -> int:
                         reference = reference or metrics
                         score = selection_score(metrics, reference)
                     else:
-                        score = float(loss)
+                        score = float(loss.detach())
                     is_best = score < best
                     best = min(best, score)
                     if is_main:

@@ -4,14 +4,19 @@ Figures (each with its target; ratios are measured interleaved, see :mod:`.timin
 
 =================================== ======== =========================================================
 ``cached_vs_recompute_speedup``     >= 1.4   paper config: step recomputing frame t-1 / step with the cached state
-``mtl_step_over_resnet50``          <= 3.0   paper config: full multitask step (faster backend; both reported) / one plain ResNet-50 forward, same input
+``mtl_step_over_resnet50``          <= 3.0   paper config: full multitask step (fastest backend; each reported) / one plain ResNet-50 forward, same input
 ``node_latency_over_step``          <= 1.10  lite: image-in -> pose-out through the real node over DDS / bare ``Localizer.step``
 ``lite_hz``                         >= 15    lite: ``Localizer.step`` per second at its input size (faster backend; both reported)
 ``converter_speed_over_png_decode`` >= 0.8   frames/s of ``vlocnetpp convert`` / frames/s of decoding the same PNGs alone
 ``synth_fps``                       >= 30    synthetic campus frames rendered per second at 320x180
 ``peak_rss_mb``                     (none)   peak resident memory of the node process while streaming (MiB)
-``paper_step_ms``                   <= 5     paper step in ms (faster backend); target on CUDA only (DESIGN: H100 goal)
+``paper_step_ms``                   <= 5     paper step in ms (fastest backend); target on CUDA only (DESIGN: H100 goal)
 =================================== ======== =========================================================
+
+Also reported: ``mtl_gmac_over_resnet50``, the step's multiply-accumulates over the ResNet-50's
+(the time ratio of a backend exactly as efficient as the yardstick), and on CUDA the step replayed
+from a CUDA graph (:mod:`.cuda_graph`) as a third backend. Figures whose parts are not installed
+(ROS 2, ``rosbags``, ``onnx`` / ``onnxruntime``) are None with a note saying why.
 
 Untrained checkpoints (``init_checkpoint``) are used: speed does not depend on the weights.
 ``--quick`` (under a minute) runs the paper config at 224x128 instead of 448x256 and fewer
@@ -32,7 +37,7 @@ import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
-from vlocnetpp_core.errors import DataError, UserError
+from vlocnetpp_core.errors import DataError, UserError, require
 
 
 @dataclass
@@ -103,12 +108,17 @@ TARGETS: dict[str, tuple[str, float | None, str]] = {
     "paper_step_ms": ("<=", None, "paper multitask step with cached state (ms, faster backend); 5 ms goal on CUDA"),
 }
 GPU_PAPER_STEP_MS = 5.0
-NOT_TIMES = ("node_peak_rss_mb", "node_rss_mb", "converter_frames", "converter_bag_mb")  # measured values that are not seconds
+NOT_TIMES = ("node_peak_rss_mb", "node_rss_mb", "converter_frames", "converter_bag_mb", "paper_step_gmac", "resnet50_gmac",
+             "cuda_graph_max_abs_diff")  # measured values that are not seconds
 
 
 def run_bench(settings: BenchSettings, device: str = "cpu", quick: bool = False, progress=None) -> dict:
-    """Measure everything; returns the report (see :func:`format_table` and the module doc)."""
-    import onnxruntime
+    """Measure everything; returns the report (see :func:`format_table` and the module doc).
+
+    Figures whose parts are not installed (ROS 2 for the node, ``rosbags`` for the converter,
+    ``onnx`` / ``onnxruntime`` for the onnx backend, as on a GPU machine with PyTorch only) are
+    reported as not measured (None) with a note saying why; the rest is measured as usual.
+    """
     import torch
 
     from vlocnetpp_core.bench import figures
@@ -120,7 +130,7 @@ def run_bench(settings: BenchSettings, device: str = "cpu", quick: bool = False,
     if settings.threads:
         torch.set_num_threads(settings.threads)
     report: dict = {"machine": {"device": device, "cpus": os.cpu_count(), "torch_threads": torch.get_num_threads(),
-                                "torch": torch.__version__, "onnxruntime": onnxruntime.__version__, "load_average_start": figures.cpu_load()},
+                                "torch": torch.__version__, "onnxruntime": _version("onnxruntime"), "load_average_start": figures.cpu_load()},
                     "settings": {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(settings).items()},
                     "quick": quick, "notes": [], "times_ms": {}}
     times: dict = {}
@@ -135,6 +145,8 @@ def run_bench(settings: BenchSettings, device: str = "cpu", quick: bool = False,
                                    work, settings.threads)
         if "onnx_error" in paper:
             report["notes"].append(f"onnx paper step not measured: {paper.pop('onnx_error')}")
+        if "cuda_graph_error" in paper:
+            report["notes"].append(f"CUDA-graph paper step not measured: {paper.pop('cuda_graph_error')}")
         times.update({k: v for k, v in paper.items() if k != "input_size"})
         report["paper_input_size"] = paper["input_size"]
         if quick:
@@ -150,6 +162,7 @@ def run_bench(settings: BenchSettings, device: str = "cpu", quick: bool = False,
         if settings.node:
             say("node: latency over DDS vs bare Localizer.step")
             try:
+                require("rclpy", "the node figure (ROS 2 Jazzy)")
                 node = figures.node_latency(lite_ckpt, camera, work, device, settings.threads, settings.node_backend,
                                             settings.node_transport, settings.node_repetitions, settings.node_warmup)
             except UserError as err:
@@ -157,7 +170,12 @@ def run_bench(settings: BenchSettings, device: str = "cpu", quick: bool = False,
                 node = {}
             times.update(node)
         say(f"converter: {settings.converter_frames} frames vs PNG decode")
-        times.update(figures.converter(work, settings.converter_frames, settings.synth_size, settings.repetitions, settings.warmup))
+        try:
+            require("rosbags", "the converter figure")
+        except UserError as err:
+            report["notes"].append(f"converter not measured: {err}")
+        else:
+            times.update(figures.converter(work, settings.converter_frames, settings.synth_size, settings.repetitions, settings.warmup))
     report["machine"]["load_average_end"] = figures.cpu_load()
     _add_figures(report, times, device)
     return report
@@ -165,29 +183,33 @@ def run_bench(settings: BenchSettings, device: str = "cpu", quick: bool = False,
 
 def _add_figures(report: dict, times: dict, device: str) -> None:
     """The figures, their targets and the absolute times (ms) from the measured ``times`` (seconds)."""
-    best = _faster_backend(times["lite_step_torch"], times.get("lite_step_onnx"))
-    paper_best = _faster_backend(times["paper_step_cached"], times.get("paper_step_onnx"))
-    paper_step = times["paper_step_onnx" if paper_best == "onnx" else "paper_step_cached"]
+    lite_steps = {name: times.get(f"lite_step_{name}") for name in ("torch", "onnx")}
+    paper_steps = {"torch": times["paper_step_cached"], "onnx": times.get("paper_step_onnx"), "cuda_graph": times.get("paper_step_cuda_graph")}
+    best, paper_best = _fastest(lite_steps), _fastest(paper_steps)
+    converter = "converter_frame" in times
     values = {
         "cached_vs_recompute_speedup": times["paper_step_recompute"] / times["paper_step_cached"],
-        "mtl_step_over_resnet50": paper_step / times["resnet50_forward"],
+        "mtl_step_over_resnet50": paper_steps[paper_best] / times["resnet50_forward"],
         "node_latency_over_step": times["node_latency"] / times["node_bare_step"] if "node_latency" in times else None,
-        "lite_hz": 1.0 / times[f"lite_step_{best}"],
-        "converter_speed_over_png_decode": times["png_decode_frame"] / times["converter_frame"],
+        "lite_hz": 1.0 / lite_steps[best],
+        "converter_speed_over_png_decode": times["png_decode_frame"] / times["converter_frame"] if converter else None,
         "synth_fps": 1.0 / times["synth_frame"],
         "peak_rss_mb": times.get("node_peak_rss_mb"),
-        "paper_step_ms": 1000.0 * paper_step,
+        "paper_step_ms": 1000.0 * paper_steps[paper_best],
     }
     report.update(values)
-    # wall time per frame on an idle 2-core machine is at least half the CPU time and at least the main thread's
-    cpu_bound = max((times["converter_cpu_decode_threads"] + times["converter_cpu_main_thread"]) / 2, times["converter_cpu_main_thread"])
-    report["converter_speed_over_png_decode_idle_estimate"] = times["png_decode_cpu"] / cpu_bound
+    if converter:
+        # wall time per frame on an idle 2-core machine is at least half the CPU time and at least the main thread's
+        cpu_bound = max((times["converter_cpu_decode_threads"] + times["converter_cpu_main_thread"]) / 2, times["converter_cpu_main_thread"])
+        report["converter_speed_over_png_decode_idle_estimate"] = times["png_decode_cpu"] / cpu_bound
     report["lite_backend"] = best
-    report["lite_hz_torch"] = 1.0 / times["lite_step_torch"]
-    report["lite_hz_onnx"] = None if times.get("lite_step_onnx") is None else 1.0 / times["lite_step_onnx"]
+    for name, value in lite_steps.items():
+        report[f"lite_hz_{name}"] = None if value is None else 1.0 / value
     report["paper_backend"] = paper_best
-    report["mtl_step_over_resnet50_torch"] = times["paper_step_cached"] / times["resnet50_forward"]
-    report["mtl_step_over_resnet50_onnx"] = None if times.get("paper_step_onnx") is None else times["paper_step_onnx"] / times["resnet50_forward"]
+    for name, value in paper_steps.items():
+        if name != "cuda_graph" or value is not None:
+            report[f"mtl_step_over_resnet50_{name}"] = None if value is None else value / times["resnet50_forward"]
+    report["mtl_gmac_over_resnet50"] = times["paper_step_gmac"] / times["resnet50_gmac"]
     report["times_ms"] = {k: round(1000.0 * v, 3) for k, v in times.items() if k not in NOT_TIMES and v is not None}
     report.update({k: times[k] for k in NOT_TIMES if k in times})
     targets = {}
@@ -198,17 +220,30 @@ def _add_figures(report: dict, times: dict, device: str) -> None:
         met = None if target is None or value is None else (value >= target if op == ">=" else value <= target)
         targets[name] = {"value": value, "target": target, "compare": op if target is not None else None, "met": met, "what": what}
     report["targets"] = targets
-    report["notes"].append(f"lite_hz uses the {best} backend (torch {report['lite_hz_torch']:.1f} Hz"
-                           + (f", onnx {report['lite_hz_onnx']:.1f} Hz)" if report["lite_hz_onnx"] is not None else ")"))
-    report["notes"].append(f"mtl_step_over_resnet50 and paper_step_ms use the {paper_best} backend for the paper step "
-                           f"(torch {report['mtl_step_over_resnet50_torch']:.2f}"
-                           + (f", onnx {report['mtl_step_over_resnet50_onnx']:.2f})" if report["mtl_step_over_resnet50_onnx"] is not None else ")")
-                           + "; the ResNet-50 yardstick is always one plain eager torch forward")
+    report["notes"].append(f"lite_hz uses the {best} backend ("
+                           + ", ".join(f"{n} {report[f'lite_hz_{n}']:.1f} Hz" for n in lite_steps if report[f"lite_hz_{n}"] is not None) + ")")
+    report["notes"].append(f"mtl_step_over_resnet50 and paper_step_ms use the {paper_best} paper step ("
+                           + ", ".join(f"{n} {report[f'mtl_step_over_resnet50_{n}']:.2f}" for n in paper_steps
+                                       if report.get(f"mtl_step_over_resnet50_{n}") is not None)
+                           + f"); the ResNet-50 yardstick is always one plain eager torch forward; in compute the step is "
+                           f"{report['mtl_gmac_over_resnet50']:.2f}x the ResNet-50 ({times['paper_step_gmac']:.2f} vs "
+                           f"{times['resnet50_gmac']:.2f} GMAC)")
 
 
-def _faster_backend(torch_time: float, onnx_time: float | None) -> str:
-    """``onnx`` when it was measured and is faster than torch, else ``torch``."""
-    return "onnx" if onnx_time is not None and onnx_time < torch_time else "torch"
+def _fastest(steps: dict[str, float | None]) -> str:
+    """The name of the fastest measured step (None: not measured); the first on a tie."""
+    measured = {name: t for name, t in steps.items() if t is not None}
+    return min(measured, key=measured.get)
+
+
+def _version(package: str) -> str | None:
+    """The installed version of ``package`` (None: not installed)."""
+    import importlib.metadata
+
+    try:
+        return importlib.metadata.version(package)
+    except importlib.metadata.PackageNotFoundError:
+        return None
 
 
 def format_table(report: dict) -> str:
@@ -219,16 +254,18 @@ def format_table(report: dict) -> str:
                                        f" at {report['paper_input_size'][0]}x{report['paper_input_size'][1]}",
         "mtl_step_over_resnet50": f"{report['paper_backend']}: torch step {t['paper_step_cached']:.1f} ms"
                                   + (f", onnx {t['paper_step_onnx']:.1f} ms" if "paper_step_onnx" in t else "")
-                                  + f" / ResNet-50 {t['resnet50_forward']:.1f} ms",
+                                  + (f", CUDA graph {t['paper_step_cuda_graph']:.2f} ms" if "paper_step_cuda_graph" in t else "")
+                                  + f" / ResNet-50 {t['resnet50_forward']:.1f} ms (compute {report['mtl_gmac_over_resnet50']:.2f}x)",
         "node_latency_over_step": (f"node {t['node_latency']:.1f} ms / bare {t['node_bare_step']:.1f} ms ({report['settings']['node_backend']}, "
                                    f"{report['settings']['node_transport']} DDS, "
                                    f"camera {report['camera_size'][0]}x{report['camera_size'][1]})") if "node_latency" in t else "not measured",
         "lite_hz": f"{report['lite_backend']}: torch {t['lite_step_torch']:.1f} ms"
                    + (f", onnx {t['lite_step_onnx']:.1f} ms" if "lite_step_onnx" in t else "")
                    + f" at {report['lite_input_size'][0]}x{report['lite_input_size'][1]}",
-        "converter_speed_over_png_decode": f"decode {t['png_decode_frame']:.2f} ms / convert {t['converter_frame']:.2f} ms per frame; "
-                                           f"CPU: decode threads {t['converter_cpu_decode_threads']:.2f}, main {t['converter_cpu_main_thread']:.2f} "
-                                           f"-> {report['converter_speed_over_png_decode_idle_estimate']:.2f} on an idle 2-core machine",
+        "converter_speed_over_png_decode": (f"decode {t['png_decode_frame']:.2f} ms / convert {t['converter_frame']:.2f} ms per frame; "
+                                            f"CPU: decode threads {t['converter_cpu_decode_threads']:.2f}, main {t['converter_cpu_main_thread']:.2f} "
+                                            f"-> {report['converter_speed_over_png_decode_idle_estimate']:.2f} on an idle 2-core machine")
+                                           if "converter_frame" in t else "not measured",
         "synth_fps": f"{t['synth_frame']:.1f} ms per frame",
         "peak_rss_mb": f"now {report['node_rss_mb']:.0f} MiB" if "node_rss_mb" in report else "not measured",
         "paper_step_ms": f"{report['machine']['device']}",
@@ -242,7 +279,7 @@ def format_table(report: dict) -> str:
     widths = [max(len(r[i]) for r in rows) for i in range(4)]
     lines = ["  ".join(r[i].ljust(widths[i]) for i in range(4)) + "  " + r[4] for r in rows]
     m = report["machine"]
-    lines.append(f"\n{m['device']}, {m['cpus']} CPUs, torch {m['torch']} ({m['torch_threads']} threads), onnxruntime {m['onnxruntime']}; "
+    lines.append(f"\n{m['device']}, {m['cpus']} CPUs, torch {m['torch']} ({m['torch_threads']} threads), onnxruntime {m['onnxruntime'] or 'not installed'}; "
                  f"load average {m['load_average_start']} -> {m['load_average_end']}")
     lines += [f"note: {n}" for n in report["notes"]]
     return "\n".join(lines)

@@ -47,20 +47,24 @@ def synth_frames(count: int, size: tuple[int, int], scene: str = "campus", seed:
 
 def paper_step(config: str, input_size: tuple[int, int] | None, frames: list[np.ndarray], device: str, repetitions: int,
                warmup: int, workdir: Path, threads: int = 0) -> dict:
-    """Paper-config streaming step with the cached state (torch, and the ONNX Runtime graph of the
-    same weights) vs recomputing the previous frame, and one plain ResNet-50 forward (torch, eager)
-    at the same input size; torch in ``torch.inference_mode``, eval mode.
+    """Paper-config streaming step with the cached state (torch, the ONNX Runtime graph of the same
+    weights, and on CUDA the torch step replayed from a CUDA graph) vs recomputing the previous
+    frame, and one plain ResNet-50 forward (torch, eager) at the same input size; torch in
+    ``torch.inference_mode``, eval mode. Also the compute of the cached step and of the ResNet-50
+    (``paper_step_gmac``, ``resnet50_gmac``: multiply-accumulates of convolutions and matrix products).
 
     "Recompute" is what a network without the cache does for frame t: a first-frame step on frame
     t-1 (which yields its Res5a, odometry Res4 and semantic Res4f/Res5c; its heads and decoder
     are computed too, a few percent of the step) followed by the step on frame t. The graph is
-    exported into ``workdir``; where ONNX Runtime cannot run on ``device``, ``paper_step_onnx`` is
-    None and ``onnx_error`` says why.
+    exported into ``workdir``; where it cannot be exported or run (no ``onnx`` or ``onnxruntime``
+    package, no ONNX Runtime provider for ``device``), ``paper_step_onnx`` is None and ``onnx_error`` says why; likewise
+    ``paper_step_cuda_graph`` / ``cuda_graph_error`` on CUDA, with ``cuda_graph_max_abs_diff``
+    against the eager step.
     """
+    from torch.utils.flop_counter import FlopCounterMode
+
     from vlocnetpp_core.bench.resnet50 import ResNet50
     from vlocnetpp_core.model import VLocNetPP, load_model_config
-    from vlocnetpp_core.onnx_backend import OnnxStep
-    from vlocnetpp_core.onnx_export import export_step
 
     cfg = load_model_config(config)
     if input_size is not None:
@@ -72,30 +76,66 @@ def paper_step(config: str, input_size: tuple[int, int] | None, frames: list[np.
     prev, cur = (_image_tensor(f, (W, H), device) for f in (frames[0], frames[1]))
     K = torch.tensor([[[0.55 * W, 0.0, (W - 1) / 2], [0.0, 0.55 * W, (H - 1) / 2], [0.0, 0.0, 1.0]]], device=device)
     result: dict = {"input_size": [W, H], "paper_step_onnx": None}
-    start = time.perf_counter()
-    graph = export_step(model, workdir / f"{cfg.name}-{W}x{H}.onnx")
-    result["paper_onnx_export"] = time.perf_counter() - start
+    onnx_step = _onnx_paper_step(model, workdir / f"{cfg.name}-{W}x{H}.onnx", device, threads, result)
     with torch.inference_mode():
         _, state = model.step(prev, None, K)
+        for name, call in (("paper_step_gmac", lambda: model.step(cur, state, K)), ("resnet50_gmac", lambda: resnet(cur))):
+            counter = FlopCounterMode(display=False)
+            with counter:
+                call()
+            result[name] = counter.get_total_flops() / 2e9
 
         def recompute() -> None:
             _, s = model.step(prev, None, K)
             model.step(cur, s, K)
 
         cases = {"cached": lambda: model.step(cur, state, K), "recompute": recompute, "resnet50": lambda: resnet(cur)}
-        try:
-            onnx_step = OnnxStep(graph, device, threads or None)
-        except UserError as err:
-            result["onnx_error"] = str(err)
-        else:
+        if onnx_step is not None:
             _, onnx_state = onnx_step(prev, None, K)
             cases["onnx"] = lambda: onnx_step(cur, onnx_state, K)
+        if torch.device(device).type == "cuda":
+            graph_step = _cuda_graph_step(model, cur, state, K, result)
+            if graph_step is not None:
+                cases["cuda_graph"] = lambda: graph_step(cur, state, K)
         times = interleaved(cases, repetitions, warmup, synchronizer(device))
     result.update({"paper_step_cached": median(times["cached"]), "paper_step_recompute": median(times["recompute"]),
                    "resnet50_forward": median(times["resnet50"])})
-    if "onnx" in times:
-        result["paper_step_onnx"] = median(times["onnx"])
+    for name in ("onnx", "cuda_graph"):
+        if name in times:
+            result[f"paper_step_{name}"] = median(times[name])
     return result
+
+
+def _onnx_paper_step(model: torch.nn.Module, path: Path, device: str, threads: int, result: dict):
+    """The ONNX Runtime session of ``model``'s exported step, or None with ``result["onnx_error"]`` set."""
+    from vlocnetpp_core.onnx_backend import OnnxStep
+    from vlocnetpp_core.onnx_export import export_step
+
+    try:
+        start = time.perf_counter()
+        graph = export_step(model, path)
+        result["paper_onnx_export"] = time.perf_counter() - start
+        return OnnxStep(graph, device, threads or None)
+    except UserError as err:
+        result["onnx_error"] = str(err)
+    return None
+
+
+def _cuda_graph_step(model: torch.nn.Module, image: torch.Tensor, state, K: torch.Tensor, result: dict):
+    """The captured step (:class:`.cuda_graph.CudaGraphStep`) checked against the eager one, or None with
+    ``result["cuda_graph_error"]`` set (capture fails on an operation that synchronises with the host)."""
+    from vlocnetpp_core.bench.cuda_graph import CudaGraphStep, max_abs_difference
+
+    try:
+        start = time.perf_counter()
+        graph_step = CudaGraphStep(model, image, state, K)
+        result["cuda_graph_capture"] = time.perf_counter() - start
+        result["cuda_graph_max_abs_diff"] = max_abs_difference(graph_step(image, state, K)[0], model.step(image, state, K)[0])
+        return graph_step
+    except RuntimeError as err:
+        result["cuda_graph_error"] = f"capture failed: {str(err).strip().splitlines()[0]}"
+        torch.cuda.synchronize()
+        return None
 
 
 def _image_tensor(rgb: np.ndarray, size: tuple[int, int], device: str) -> torch.Tensor:
@@ -109,18 +149,18 @@ def lite_step(checkpoint: Path, frames: list[np.ndarray], device: str, threads: 
     torch and ONNX Runtime backends interleaved, each on its own stream of the same frames.
 
     The ONNX graph is exported next to the checkpoint first (``NAME.onnx``), so the onnx backend
-    finds it. On a device where the onnx backend cannot run (CUDA without onnxruntime-gpu), its
-    entry is None and ``onnx_error`` says why.
+    finds it. Where the onnx backend cannot run (no ``onnx`` / ``onnxruntime`` package, CUDA
+    without onnxruntime-gpu), its entry is None and ``onnx_error`` says why.
     """
     from vlocnetpp_core.localizer import Localizer
     from vlocnetpp_core.onnx_export import export_checkpoint
 
-    start = time.perf_counter()
-    export_checkpoint(checkpoint, checkpoint.with_suffix(".onnx"))
-    export_s = time.perf_counter() - start
     localizers = {"torch": Localizer.from_checkpoint(checkpoint, device=device, num_threads=threads or None)}
-    result: dict = {"onnx_export": export_s, "lite_step_onnx": None}
+    result: dict = {"lite_step_onnx": None}
     try:
+        start = time.perf_counter()
+        export_checkpoint(checkpoint, checkpoint.with_suffix(".onnx"))
+        result["onnx_export"] = time.perf_counter() - start
         localizers["onnx"] = Localizer.from_checkpoint(checkpoint, device=device, num_threads=threads or None, backend="onnx")
     except UserError as err:
         result["onnx_error"] = str(err)
