@@ -6,6 +6,7 @@ that the two sides of a ratio see the same machine noise.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import os
@@ -57,8 +58,8 @@ def paper_step(config: str, input_size: tuple[int, int] | None, frames: list[np.
     t-1 (which yields its Res5a, odometry Res4 and semantic Res4f/Res5c; its heads and decoder
     are computed too, a few percent of the step) followed by the step on frame t. The graph is
     exported into ``workdir``; where it cannot be exported or run (no ``onnx`` or ``onnxruntime``
-    package, no ONNX Runtime provider for ``device``), ``paper_step_onnx`` is None and ``onnx_error`` says why; likewise
-    ``paper_step_cuda_graph`` / ``cuda_graph_error`` on CUDA, with ``cuda_graph_max_abs_diff``
+    package, no ONNX Runtime provider for ``device``), ``paper_step_onnx`` is None and
+    ``onnx_error`` says why; likewise ``paper_step_cuda_graph`` / ``cuda_graph_error`` on CUDA, with ``cuda_graph_max_abs_diff``
     against the eager step.
     """
     from torch.utils.flop_counter import FlopCounterMode
@@ -133,8 +134,9 @@ def _cuda_graph_step(model: torch.nn.Module, image: torch.Tensor, state, K: torc
         result["cuda_graph_max_abs_diff"] = max_abs_difference(graph_step(image, state, K)[0], model.step(image, state, K)[0])
         return graph_step
     except RuntimeError as err:
-        result["cuda_graph_error"] = f"capture failed: {str(err).strip().splitlines()[0]}"
-        torch.cuda.synchronize()
+        result["cuda_graph_error"] = f"capture failed: {(str(err).strip().splitlines() or [type(err).__name__])[0]}"
+        with contextlib.suppress(RuntimeError):
+            torch.cuda.synchronize()
         return None
 
 
