@@ -161,7 +161,7 @@ def export_checkpoint(checkpoint: str | Path, out: str | Path) -> Path:
 
 def read_metadata(path: str | Path) -> dict[str, str]:
     """The ``metadata_props`` of an exported step graph; :class:`DataError` when it is not one."""
-    onnx = require("onnx", "ONNX export")
+    onnx = require("onnx", "reading an exported ONNX graph")
 
     path = Path(path)
     if not path.is_file():
