@@ -17,6 +17,7 @@ setup(
         (f"share/{PACKAGE}/models", sorted(glob("models/*.safetensors") + glob("models/*.json"))),
     ],
     install_requires=["setuptools"],
+    extras_require={"onnx": ["onnx", "onnxruntime"]},  # backend: onnx, export-onnx (versions: requirements.txt)
     zip_safe=False,
     maintainer="VLocNet++ ROS maintainers",
     maintainer_email="maintainers@example.org",

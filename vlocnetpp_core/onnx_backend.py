@@ -107,6 +107,7 @@ def onnx_step_for(model: torch.nn.Module, meta: dict, device: str | torch.device
                   next_to: str | Path | None = None) -> OnnxStep:
     """The :class:`OnnxStep` of a loaded checkpoint: ``next_to`` (``NAME.onnx``) when it matches these
     weights, else the cached export (made now when missing; see module doc)."""
+    require("onnxruntime", "backend 'onnx'")  # before a possibly long export
     weights_id = str(meta.get("weights_id") or "")
     W, H = model.config.input_size
     if next_to is not None and Path(next_to).is_file():
