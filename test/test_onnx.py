@@ -4,6 +4,7 @@ stream (first frame, cached state, given depth, resets), file lookup and stalene
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 
 import cv2
@@ -159,7 +160,8 @@ def test_export_cli_and_errors(exported, tmp_path, capsys):
 
 
 def test_node_runs_the_onnx_backend(exported, monkeypatch):
-    """``backend: onnx`` in the node: its poses are the onnx Localizer's on the same frames; a bad value stops it."""
+    """``backend: onnx`` in the node: its poses are the onnx Localizer's on the same frames; a bad value, or
+    onnxruntime missing, stops it with a message."""
     import rclpy
     from node_fixtures import Harness, camera_frames, domain_id, image_msg, wait_until
     from rclpy.parameter import Parameter
@@ -175,6 +177,10 @@ def test_node_runs_the_onnx_backend(exported, monkeypatch):
     try:
         with pytest.raises(UserError, match="backend must be"):
             LocalizerNode(context=ctx, parameter_overrides=[Parameter(k, value=v) for k, v in {**params, "backend": "trt"}.items()])
+        with monkeypatch.context() as m:  # onnxruntime is an optional package: without it the node names it and stops
+            m.setitem(sys.modules, "onnxruntime", None)
+            with pytest.raises(UserError, match="backend 'onnx' needs the Python package 'onnxruntime'"):
+                LocalizerNode(context=ctx, parameter_overrides=[Parameter(k, value=v) for k, v in params.items()])
         node = LocalizerNode(context=ctx, parameter_overrides=[Parameter(k, value=v) for k, v in params.items()])
         tester = Harness(ctx, extra_nodes=(node,))
         try:
