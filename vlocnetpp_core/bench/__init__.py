@@ -15,7 +15,7 @@ Figures (each with its target; ratios are measured interleaved, see :mod:`.timin
 
 Also reported: ``mtl_gmac_over_resnet50``, the step's multiply-accumulates over the ResNet-50's
 (the time ratio of a backend exactly as efficient as the yardstick), and on CUDA the step replayed
-from a CUDA graph (:mod:`.cuda_graph`) as a third backend. Figures whose parts are not installed
+from a CUDA graph (:mod:`.cuda_graph`) and the step compiled by ``torch.compile`` as further backends. Figures whose parts are not installed
 (ROS 2, ``rosbags``, ``onnx`` / ``onnxruntime``) are None with a note saying why.
 
 Untrained checkpoints (``init_checkpoint``) are used: speed does not depend on the weights.
@@ -109,7 +109,7 @@ TARGETS: dict[str, tuple[str, float | None, str]] = {
 }
 GPU_PAPER_STEP_MS = 5.0
 NOT_TIMES = ("node_peak_rss_mb", "node_rss_mb", "converter_frames", "converter_bag_mb", "paper_step_gmac", "resnet50_gmac",
-             "cuda_graph_max_abs_diff")  # measured values that are not seconds
+             "cuda_graph_max_abs_diff", "compiled_max_abs_diff")  # measured values that are not seconds
 
 
 def run_bench(settings: BenchSettings, device: str = "cpu", quick: bool = False, progress=None) -> dict:
@@ -145,8 +145,9 @@ def run_bench(settings: BenchSettings, device: str = "cpu", quick: bool = False,
                                    work, settings.threads)
         if "onnx_error" in paper:
             report["notes"].append(f"onnx paper step not measured: {paper.pop('onnx_error')}")
-        if "cuda_graph_error" in paper:
-            report["notes"].append(f"CUDA-graph paper step not measured: {paper.pop('cuda_graph_error')}")
+        for name in ("cuda_graph", "compiled"):
+            if f"{name}_error" in paper:
+                report["notes"].append(f"{name} paper step not measured: {paper.pop(f'{name}_error')}")
         times.update({k: v for k, v in paper.items() if k != "input_size"})
         report["paper_input_size"] = paper["input_size"]
         if quick:
@@ -184,7 +185,8 @@ def run_bench(settings: BenchSettings, device: str = "cpu", quick: bool = False,
 def _add_figures(report: dict, times: dict, device: str) -> None:
     """The figures, their targets and the absolute times (ms) from the measured ``times`` (seconds)."""
     lite_steps = {name: times.get(f"lite_step_{name}") for name in ("torch", "onnx")}
-    paper_steps = {"torch": times["paper_step_cached"], "onnx": times.get("paper_step_onnx"), "cuda_graph": times.get("paper_step_cuda_graph")}
+    paper_steps = {"torch": times["paper_step_cached"], "onnx": times.get("paper_step_onnx"),
+                   "cuda_graph": times.get("paper_step_cuda_graph"), "compiled": times.get("paper_step_compiled")}
     best, paper_best = _fastest(lite_steps), _fastest(paper_steps)
     converter = "converter_frame" in times
     values = {
@@ -207,7 +209,7 @@ def _add_figures(report: dict, times: dict, device: str) -> None:
         report[f"lite_hz_{name}"] = None if value is None else 1.0 / value
     report["paper_backend"] = paper_best
     for name, value in paper_steps.items():
-        if name != "cuda_graph" or value is not None:
+        if name in ("torch", "onnx") or value is not None:  # the CUDA-only variants when measured
             report[f"mtl_step_over_resnet50_{name}"] = None if value is None else value / times["resnet50_forward"]
     report["mtl_gmac_over_resnet50"] = times["paper_step_gmac"] / times["resnet50_gmac"]
     report["times_ms"] = {k: round(1000.0 * v, 3) for k, v in times.items() if k not in NOT_TIMES and v is not None}
@@ -255,6 +257,7 @@ def format_table(report: dict) -> str:
         "mtl_step_over_resnet50": f"{report['paper_backend']}: torch step {t['paper_step_cached']:.1f} ms"
                                   + (f", onnx {t['paper_step_onnx']:.1f} ms" if "paper_step_onnx" in t else "")
                                   + (f", CUDA graph {t['paper_step_cuda_graph']:.2f} ms" if "paper_step_cuda_graph" in t else "")
+                                  + (f", compiled {t['paper_step_compiled']:.2f} ms" if "paper_step_compiled" in t else "")
                                   + f" / ResNet-50 {t['resnet50_forward']:.1f} ms (compute {report['mtl_gmac_over_resnet50']:.2f}x)",
         "node_latency_over_step": (f"node {t['node_latency']:.1f} ms / bare {t['node_bare_step']:.1f} ms ({report['settings']['node_backend']}, "
                                    f"{report['settings']['node_transport']} DDS, "

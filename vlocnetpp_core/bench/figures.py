@@ -19,6 +19,7 @@ import cv2
 import numpy as np
 import torch
 
+from vlocnetpp_core.bench.cuda_graph import max_abs_difference
 from vlocnetpp_core.bench.timing import interleaved, median, synchronizer
 from vlocnetpp_core.errors import UserError
 
@@ -49,8 +50,8 @@ def synth_frames(count: int, size: tuple[int, int], scene: str = "campus", seed:
 def paper_step(config: str, input_size: tuple[int, int] | None, frames: list[np.ndarray], device: str, repetitions: int,
                warmup: int, workdir: Path, threads: int = 0) -> dict:
     """Paper-config streaming step with the cached state (torch, the ONNX Runtime graph of the same
-    weights, and on CUDA the torch step replayed from a CUDA graph) vs recomputing the previous
-    frame, and one plain ResNet-50 forward (torch, eager) at the same input size; torch in
+    weights, and on CUDA the torch step replayed from a CUDA graph and compiled by ``torch.compile``)
+    vs recomputing the previous frame, and one plain ResNet-50 forward (torch, eager) at the same input size; torch in
     ``torch.inference_mode``, eval mode. Also the compute of the cached step and of the ResNet-50
     (``paper_step_gmac``, ``resnet50_gmac``: multiply-accumulates of convolutions and matrix products).
 
@@ -59,8 +60,9 @@ def paper_step(config: str, input_size: tuple[int, int] | None, frames: list[np.
     are computed too, a few percent of the step) followed by the step on frame t. The graph is
     exported into ``workdir``; where it cannot be exported or run (no ``onnx`` or ``onnxruntime``
     package, no ONNX Runtime provider for ``device``), ``paper_step_onnx`` is None and
-    ``onnx_error`` says why; likewise ``paper_step_cuda_graph`` / ``cuda_graph_error`` on CUDA, with ``cuda_graph_max_abs_diff``
-    against the eager step.
+    ``onnx_error`` says why; likewise ``paper_step_cuda_graph`` / ``cuda_graph_error`` and
+    ``paper_step_compiled`` / ``compiled_error`` on CUDA, with ``cuda_graph_max_abs_diff`` /
+    ``compiled_max_abs_diff`` against the eager step.
     """
     from torch.utils.flop_counter import FlopCounterMode
 
@@ -95,13 +97,14 @@ def paper_step(config: str, input_size: tuple[int, int] | None, frames: list[np.
             _, onnx_state = onnx_step(prev, None, K)
             cases["onnx"] = lambda: onnx_step(cur, onnx_state, K)
         if torch.device(device).type == "cuda":
-            graph_step = _cuda_graph_step(model, cur, state, K, result)
-            if graph_step is not None:
-                cases["cuda_graph"] = lambda: graph_step(cur, state, K)
+            for name, make in (("cuda_graph", _cuda_graph_step), ("compiled", _compiled_step)):
+                fast_step = make(model, cur, state, K, result)
+                if fast_step is not None:
+                    cases[name] = lambda fast_step=fast_step: fast_step(cur, state, K)
         times = interleaved(cases, repetitions, warmup, synchronizer(device))
     result.update({"paper_step_cached": median(times["cached"]), "paper_step_recompute": median(times["recompute"]),
                    "resnet50_forward": median(times["resnet50"])})
-    for name in ("onnx", "cuda_graph"):
+    for name in ("onnx", "cuda_graph", "compiled"):
         if name in times:
             result[f"paper_step_{name}"] = median(times[name])
     return result
@@ -125,7 +128,7 @@ def _onnx_paper_step(model: torch.nn.Module, path: Path, device: str, threads: i
 def _cuda_graph_step(model: torch.nn.Module, image: torch.Tensor, state, K: torch.Tensor, result: dict):
     """The captured step (:class:`.cuda_graph.CudaGraphStep`) checked against the eager one, or None with
     ``result["cuda_graph_error"]`` set (capture fails on an operation that synchronises with the host)."""
-    from vlocnetpp_core.bench.cuda_graph import CudaGraphStep, max_abs_difference
+    from vlocnetpp_core.bench.cuda_graph import CudaGraphStep
 
     try:
         start = time.perf_counter()
@@ -137,6 +140,25 @@ def _cuda_graph_step(model: torch.nn.Module, image: torch.Tensor, state, K: torc
         result["cuda_graph_error"] = f"capture failed: {(str(err).strip().splitlines() or [type(err).__name__])[0]}"
         with contextlib.suppress(RuntimeError):
             torch.cuda.synchronize()
+        return None
+
+
+def _compiled_step(model: torch.nn.Module, image: torch.Tensor, state, K: torch.Tensor, result: dict):
+    """``torch.compile(model.step, mode="reduce-overhead")`` (inductor kernels replayed from CUDA graphs),
+    compiled by its first calls here (``paper_compile`` seconds) and checked against the eager step, or
+    None with ``result["compiled_error"]`` set. CUDA only: on this CPU it compiled for minutes to run
+    slower than eager (docs/performance.md)."""
+    try:
+        start = time.perf_counter()
+        step = torch.compile(model.step, mode="reduce-overhead")
+        for _ in range(3):  # compile, then record the CUDA graph
+            out, _ = step(image, state, K)
+        torch.cuda.synchronize()
+        result["paper_compile"] = time.perf_counter() - start
+        result["compiled_max_abs_diff"] = max_abs_difference(out, model.step(image, state, K)[0])
+        return step
+    except Exception as err:  # dynamo / inductor raise many types; the variant is optional
+        result["compiled_error"] = f"torch.compile failed: {(str(err).strip().splitlines() or [type(err).__name__])[0]}"
         return None
 
 
