@@ -136,9 +136,9 @@ def _cuda_graph_step(model: torch.nn.Module, image: torch.Tensor, state, K: torc
         result["cuda_graph_capture"] = time.perf_counter() - start
         result["cuda_graph_max_abs_diff"] = max_abs_difference(graph_step(image, state, K)[0], model.step(image, state, K)[0])
         return graph_step
-    except RuntimeError as err:
+    except (RuntimeError, ValueError) as err:
         result["cuda_graph_error"] = f"capture failed: {(str(err).strip().splitlines() or [type(err).__name__])[0]}"
-        with contextlib.suppress(RuntimeError):
+        with contextlib.suppress(Exception):  # the device may be unusable after a failed capture
             torch.cuda.synchronize()
         return None
 
