@@ -137,7 +137,7 @@ def _cuda_graph_step(model: torch.nn.Module, image: torch.Tensor, state, K: torc
         result["cuda_graph_max_abs_diff"] = max_abs_difference(graph_step(image, state, K)[0], model.step(image, state, K)[0])
         return graph_step
     except (RuntimeError, ValueError) as err:
-        result["cuda_graph_error"] = f"capture failed: {(str(err).strip().splitlines() or [type(err).__name__])[0]}"
+        result["cuda_graph_error"] = f"capture failed: {_first_line(err)}"
         with contextlib.suppress(Exception):  # the device may be unusable after a failed capture
             torch.cuda.synchronize()
         return None
@@ -158,8 +158,13 @@ def _compiled_step(model: torch.nn.Module, image: torch.Tensor, state, K: torch.
         result["compiled_max_abs_diff"] = max_abs_difference(out, model.step(image, state, K)[0])
         return step
     except Exception as err:  # dynamo / inductor raise many types; the variant is optional
-        result["compiled_error"] = f"torch.compile failed: {(str(err).strip().splitlines() or [type(err).__name__])[0]}"
+        result["compiled_error"] = f"torch.compile failed: {_first_line(err)}"
         return None
+
+
+def _first_line(err: BaseException) -> str:
+    """The first line of an exception's message (compiler errors run to pages), else its type."""
+    return (str(err).strip().splitlines() or [type(err).__name__])[0]
 
 
 def _image_tensor(rgb: np.ndarray, size: tuple[int, int], device: str) -> torch.Tensor:
