@@ -19,7 +19,7 @@ from model_fixtures import single_thread
 from torch.utils.flop_counter import FlopCounterMode
 
 from vlocnetpp_core.bench import TARGETS, BenchSettings, format_table
-from vlocnetpp_core.bench.cuda_graph import CudaGraphStep, max_abs_difference
+from vlocnetpp_core.bench.cuda_graph import CudaGraphStep
 from vlocnetpp_core.bench.resnet50 import ResNet50
 from vlocnetpp_core.bench.timing import interleaved
 from vlocnetpp_core.cli import main
@@ -204,4 +204,5 @@ def test_cuda_graph_step_matches_the_eager_step_over_a_stream():
             frame = torch.rand_like(image)
             eager, eager_state = model.step(frame, eager_state, K)
             captured, graph_state = graph_step(frame, graph_state, K)
-            assert max_abs_difference(eager, captured) < 1e-3, k
+            for head in ("xyz", "quat", "rel_xyz", "rel_quat", "seg_logits"):  # untrained weights: large logits, so relative
+                torch.testing.assert_close(getattr(captured, head), getattr(eager, head), rtol=1e-4, atol=1e-4, msg=f"frame {k} {head}")
