@@ -99,7 +99,7 @@ class BenchSettings:
 # name -> (comparison, target, what it is)
 TARGETS: dict[str, tuple[str, float | None, str]] = {
     "cached_vs_recompute_speedup": (">=", 1.4, "paper step recomputing frame t-1 / step with cached state"),
-    "mtl_step_over_resnet50": ("<=", 3.0, "paper multitask step (faster backend) / plain ResNet-50 forward, same input"),
+    "mtl_step_over_resnet50": ("<=", 3.0, "paper multitask step (fastest backend) / plain ResNet-50 forward, same input"),
     "node_latency_over_step": ("<=", 1.10, "lite: image-in -> pose-out via the node over DDS / bare Localizer.step"),
     "lite_hz": (">=", 15.0, "lite Localizer.step per second (faster backend)"),
     "converter_speed_over_png_decode": (">=", 0.8, "convert frames/s / PNG decode frames/s"),
