@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import json
 
+import cv2
 import numpy as np
+import pytest
 from bag_report_compare import assert_same_metrics
 from data_fixtures import trajectory
 
@@ -101,3 +103,44 @@ def test_evaluate_bag_without_matching_stamps(tmp_path, capsys):
     assert main(["evaluate-bag", str(tmp_path / "b.mcap")]) == 2
     err = capsys.readouterr().err
     assert "b.mcap" in err and "stamp" in err
+
+
+def _write_bag_with_images(path, rng, compressed: bool, skip_image: int | None = None):
+    """Ground truth, camera images (distinct random textures) and a /vlocnet/pose 1 m off; returns images and poses."""
+    t, q = trajectory(10)
+    images = [cv2.GaussianBlur(rng.integers(0, 255, (36, 64, 3)).astype(np.uint8), (3, 3), 0) for _ in t]
+    topic = "/camera/image_raw/compressed" if compressed else "/camera/image_raw"
+    with BagWriter(path) as w:
+        w.add_topic("/ground_truth/pose", messages.POSE_STAMPED)
+        w.add_topic("/vlocnet/pose", messages.POSE_STAMPED)
+        w.add_topic(topic, messages.COMPRESSED_IMAGE if compressed else messages.IMAGE)
+        for i in range(len(t)):
+            ns = messages.seconds_to_ns(50.0 + 0.05 * i)
+            w.write("/ground_truth/pose", ns, messages.pose_stamped(ns, "map", t[i], q[i]))
+            w.write("/vlocnet/pose", ns + LATE_NS, messages.pose_stamped(ns, "map", t[i] + [1.0, 0, 0], q[i]))
+            if i != skip_image:
+                msg = messages.compressed_image(ns, "camera", images[i]) if compressed else messages.image(ns, "camera", images[i], "rgb8")
+                w.write(topic, ns, msg)
+    return images, t, q
+
+
+def test_evaluate_bag_scores_the_retrieval_baseline_on_the_bag_images(tmp_path, capsys):
+    from vlocnetpp_core.retrieval import ReferenceSet
+
+    rng = np.random.default_rng(3)
+    for compressed in (False, True):
+        images, t, q = _write_bag_with_images(tmp_path / "b.mcap", rng, compressed)
+        order = rng.permutation(len(images))  # the reference holds the same views, shuffled, with their true poses
+        ReferenceSet.from_images((images[k], t[k], q[k]) for k in order).save(tmp_path / "ref.npz")
+        argv = ["evaluate-bag", str(tmp_path / "b.mcap"), "--reference", str(tmp_path / "ref.npz"), "--json", str(tmp_path / "m.json")]
+        assert main(argv) == 0
+        got = json.loads((tmp_path / "m.json").read_text())
+        assert got["overall"]["pose"]["median_translation_m"] == pytest.approx(1.0, abs=1e-6)
+        assert got["baseline"]["overall"]["pose"]["median_translation_m"] == pytest.approx(0.0, abs=1e-9)  # each frame found itself
+        assert got["baseline"]["network_beats_baseline"]["translation"] is False
+        assert "the network does NOT beat retrieval" in capsys.readouterr().out
+        (tmp_path / "b.mcap").unlink()
+    _write_bag_with_images(tmp_path / "b.mcap", rng, False, skip_image=4)
+    assert main(["evaluate-bag", str(tmp_path / "b.mcap"), "--reference", str(tmp_path / "ref.npz")]) == 2
+    err = capsys.readouterr().err
+    assert "/camera/image_raw has no image for 1 scored frames" in err and "b.mcap" in err

@@ -42,10 +42,11 @@ def test_evaluate_writes_report_trajectories_and_plots(evaluated, capsys):
     assert any(line.startswith("overall") for line in stdout.splitlines())
 
     report = json.loads((out / "metrics.json").read_text())
-    assert list(report) == ["overall", "per_sequence", "meta"]
+    assert list(report) == ["overall", "per_sequence", "baseline", "meta"]
     assert report["meta"] == {"checkpoint": str(tmp / "ckpt" / "lite"), "data": str(tmp / "data"), "split": "test",
                               "untrained_tasks": None}  # the sidecar does not say how it was trained
     assert "note:" not in stdout
+    assert any(line.split()[:2] == ["retrieval", str(FRAMES)] for line in stdout.splitlines())
     assert list(report["per_sequence"]) == ["seq-00"]
     for part in (report["overall"], report["per_sequence"]["seq-00"]):
         assert list(part) == ["pose", "odometry", "segmentation", "timing"]
@@ -69,6 +70,20 @@ def test_evaluate_writes_report_trajectories_and_plots(evaluated, capsys):
     assert len(odometry["lengths_m"]) == 8 and odometry["lengths_m"][0] > 0
     t_err, _ = kitti_segment_errors(pose_matrices(truth.t, truth.q), pose_matrices(odo.t, odo.q), odometry["lengths_m"])
     assert odometry["translation_error_percent"] == pytest.approx(100 * np.mean(t_err), rel=1e-6)
+
+    # the baseline: the pose of the nearest training image of --data, on the same frames
+    from vlocnetpp_core.data import open_dataset
+    from vlocnetpp_core.retrieval import describe, open_reference
+
+    test = open_dataset(tmp / "data", None, "test")
+    frames = [test.load(i) for i in range(len(test))]
+    base_t, base_q = open_reference(tmp / "data").poses(np.stack([describe(f.image) for f in frames]))
+    base_trans, base_rot = pose_errors(base_t, base_q, truth.t, truth.q)
+    baseline = report["baseline"]
+    assert baseline["reference_frames"] == FRAMES and baseline["reference"].endswith("(train)")
+    assert baseline["overall"]["pose"]["median_translation_m"] == pytest.approx(np.median(base_trans), abs=1e-9)
+    assert baseline["overall"]["pose"]["median_rotation_deg"] == pytest.approx(np.median(base_rot), abs=1e-6)
+    assert baseline["network_beats_baseline"]["translation"] == bool(pose["median_translation_m"] < np.median(base_trans))
 
     for name in ("confusion.png", "seq-00/trajectory.png", "seq-00/errors.png", "seq-00/confusion.png", "seq-00/segmentation.png"):
         image = cv2.imread(str(out / "plots" / name))
@@ -100,6 +115,19 @@ def test_evaluate_threshold_and_length_flags(evaluated, tmp_path):
     assert list(report["overall"]["pose"])[2:] == ["accuracy_5cm_5deg", "accuracy_2m_90deg"]
     assert report["overall"]["odometry"]["lengths_m"] == [0.5, 1.0]
     assert not (tmp_path / "traj").exists()
+
+
+def test_evaluate_baseline_needs_another_split_or_a_reference(evaluated, tmp_path, capsys):
+    tmp, argv, _ = evaluated
+    argv = argv[:6] + ["--no-progress", "--max-frames", "4", "--split", "train", "--json", str(tmp_path / "m.json")]
+    assert cli.main(argv) == 0  # the training images looked up in themselves would be a zero-error baseline: none
+    assert "note: no retrieval baseline" in capsys.readouterr().out
+    assert "baseline" not in json.loads((tmp_path / "m.json").read_text())
+    assert cli.main(argv + ["--reference", str(tmp / "data")]) == 0  # asked for: the baseline is scored as given
+    assert json.loads((tmp_path / "m.json").read_text())["baseline"]["overall"]["pose"]["median_translation_m"] == 0.0
+    assert cli.main(argv + ["--reference", str(tmp_path / "missing.npz")]) == 2
+    err = capsys.readouterr().err
+    assert "--reference" in err and "missing.npz" in err
 
 
 def test_evaluate_missing_checkpoint_is_one_line(evaluated, capsys):

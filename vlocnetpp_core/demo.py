@@ -6,7 +6,9 @@
 3. replay the bag through the real ``localizer`` node over DDS with the shipped model
    (``vlocnetpp replay --through-node --rate max``: every frame is processed),
 4. score the output bag (``vlocnetpp evaluate-bag``) and print the results table, the plots
-   and the output bag.
+   and the output bag; the retrieval baseline (pose of the nearest training image, from the
+   descriptors shipped beside the model: ``models/vlocnetpp_lite.reference.npz``) is scored
+   on the same frames and printed under the network.
 
 Nothing is cached: every number comes from this run.
 """
@@ -49,8 +51,9 @@ def run(args: argparse.Namespace) -> int:
     from vlocnetpp_core.classes import CLASS_NAMES
     from vlocnetpp_core.data import open_dataset
     from vlocnetpp_core.data.synth import render_dataset
-    from vlocnetpp_core.evaluate import format_report, write_outputs
     from vlocnetpp_core.metrics import evaluate_sequences
+    from vlocnetpp_core.report import add_baseline, format_report, write_outputs
+    from vlocnetpp_core.retrieval import ReferenceSet, reference_of
 
     if args.seed == TRAINING_SEED:
         raise UserError(f"--seed {TRAINING_SEED} is the seed the shipped model was trained on; pick another for a fair test")
@@ -88,8 +91,12 @@ def run(args: argparse.Namespace) -> int:
     _done(t0)
 
     t0 = _step(4, "evaluating the output bag (global pose, odometry, segmentation)")
-    results = collect_results(result_bag, samples=3)
+    reference_file = reference_of(checkpoint)
+    reference = ReferenceSet.load(reference_file) if reference_file.is_file() else None
+    results, descriptors = collect_results(result_bag, samples=3, describe=reference is not None)
     report = evaluate_sequences(results, class_names=CLASS_NAMES)
+    if reference is not None:
+        add_baseline(report, results, descriptors, reference)
     report["meta"] = {"checkpoint": str(checkpoint), "bag": str(result_bag), "seed": args.seed}
     frames = {r.name: len(r.stamps) for r in results}
     n = sum(frames.values())
@@ -100,6 +107,8 @@ def run(args: argparse.Namespace) -> int:
 
     print("\nResults on the fresh test loops (ms/frame: see below)\n")
     print(format_report(report, frames))
+    if reference is None:
+        print(f"note: no retrieval baseline: {reference_file} (the descriptors of the model's training images) not found")
     if wall is not None:
         print(f"through the node: {1000 * wall:.1f} ms per frame (image published -> pose received, lockstep, including DDS)")
     print()

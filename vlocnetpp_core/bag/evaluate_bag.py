@@ -33,7 +33,16 @@ from vlocnetpp_core.bag import messages
 from vlocnetpp_core.bag.bagfile import BagReader
 from vlocnetpp_core.classes import CLASS_NAMES
 from vlocnetpp_core.errors import DataError, UserError
-from vlocnetpp_core.metrics import DEFAULT_THRESHOLDS, SequenceResult, accuracy_key, confusion_matrix, evaluate_sequences
+from vlocnetpp_core.metrics import SequenceResult, confusion_matrix, evaluate_sequences
+from vlocnetpp_core.report import (
+    add_baseline,
+    add_report_arguments,
+    check_report_args,
+    format_report,
+    parse_lengths,
+    thresholds_from_args,
+    write_outputs,
+)
 from vlocnetpp_core.trajectory import matrix_to_quat, pose_matrices
 
 GROUND_TRUTH_TOPIC = "/ground_truth/pose"
@@ -152,17 +161,45 @@ def score_segmentation(reader: BagReader, where: dict[int, tuple[int, int]], sam
     return scores
 
 
+def describe_frames(reader: BagReader, where: dict[int, tuple[int, int]]) -> list[np.ndarray]:
+    """Pass 3: the retrieval descriptors ``(N_k, D)`` of the camera images of the frames in ``where`` (stamp ->
+    (sequence, position)), per sequence; ``DataError`` when the bag has no camera image for one of them."""
+    from vlocnetpp_core.retrieval import describe
+
+    image_topic = next((t for t in IMAGE_TOPICS if t in reader.topics), None)
+    if image_topic is None:
+        raise DataError(reader.path, f"no camera image topic ({' or '.join(IMAGE_TOPICS)}) to describe for the retrieval baseline")
+    lengths = np.bincount([k for k, _ in where.values()])
+    out: list[np.ndarray | None] = [None] * len(lengths)
+    seen = [np.zeros(n, bool) for n in lengths]
+    for _, _, msg in reader.messages([image_topic]):
+        ns = messages.stamp_ns(msg)
+        if ns in where:
+            k, position = where[ns]
+            d = describe(messages.any_image_to_rgb(msg))
+            if out[k] is None:
+                out[k] = np.zeros((lengths[k], len(d)), np.float32)
+            out[k][position], seen[k][position] = d, True
+    for k, ok in enumerate(seen):
+        if not ok.all():
+            raise DataError(reader.path, f"{image_topic} has no image for {int((~ok).sum())} scored frames of sequence {k}")
+    return out
+
+
 def collect_results(path: str | Path, ground_truth_topic: str = GROUND_TRUTH_TOPIC, max_gap_s: float = DEFAULT_MAX_GAP_S,
-                    samples: int = 0, num_classes: int = len(CLASS_NAMES)) -> list[SequenceResult]:
+                    samples: int = 0, num_classes: int = len(CLASS_NAMES),
+                    describe: bool = False) -> tuple[list[SequenceResult], list[np.ndarray] | None]:
     """One :class:`SequenceResult` per sequence of the bag at ``path`` (see the module doc); ``samples``
-    frames per sequence are kept for the segmentation strip plot."""
-    from vlocnetpp_core.evaluate import sample_positions, sequence_name
+    frames per sequence are kept for the segmentation strip plot. With ``describe``, also the retrieval
+    descriptors of each sequence's camera images (:func:`describe_frames`), else None."""
+    from vlocnetpp_core.report import sample_positions, sequence_name
 
     with BagReader(path) as reader:
         frames = read_matched_frames(reader, ground_truth_topic, max_gap_s)
         where = {s: (k, p) for k, rng in enumerate(frames.sequences) for p, s in enumerate(frames.stamps[rng].tolist())}
         sample_stamps = {int(frames.stamps[rng[p]]) for rng in frames.sequences for p in sample_positions(len(rng), samples)}
         seg = score_segmentation(reader, where, sample_stamps, num_classes)
+        descriptors = describe_frames(reader, where) if describe else None
     results = []
     for k, rng in enumerate(frames.sequences):
         rel = relative_odometry(frames.odom_t[rng], frames.odom_q[rng])
@@ -172,35 +209,31 @@ def collect_results(path: str | Path, ground_truth_topic: str = GROUND_TRUTH_TOP
             rel_t=None if rel is None else rel[0], rel_q=None if rel is None else rel[1],
             confusion=seg.confusion[k], ms=None, samples=tuple(s[1:] for s in sorted(seg.samples[k], key=lambda s: s[0])),
         ))
-    return results
+    return results, descriptors
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("bag", metavar="BAG", help="bag with ground truth and /vlocnet/* outputs (e.g. written by 'vlocnetpp replay')")
-    p.add_argument("--json", default=None, metavar="F", help="write the metrics as JSON to F")
-    p.add_argument("--plots", default=None, metavar="DIR", help="write PNG plots (trajectories, errors, confusion matrix, segmentation strip)")
-    p.add_argument("--trajectories", default=None, metavar="DIR", help="write TUM trajectories per sequence")
     p.add_argument("--ground-truth-topic", default=GROUND_TRUTH_TOPIC, help=f"ground-truth poses (default {GROUND_TRUTH_TOPIC})")
     p.add_argument("--max-gap-s", type=float, default=DEFAULT_MAX_GAP_S,
                    help=f"a stamp gap longer than this starts a new sequence (default {DEFAULT_MAX_GAP_S:g} s)")
-    p.add_argument("--threshold-m", type=float, default=0.5, help="translation threshold of the second pose accuracy (default 0.5 m)")
-    p.add_argument("--threshold-deg", type=float, default=5.0, help="rotation threshold of the second pose accuracy (default 5 deg)")
-    p.add_argument("--odometry-lengths", default=None, metavar="L1,L2,...",
-                   help="KITTI-style segment lengths in metres (default: 10%%..80%% of the shortest sequence's path)")
-    p.add_argument("--samples", type=int, default=3, metavar="K", help="frames per sequence in the segmentation strip plot (default 3)")
+    add_report_arguments(p, "retrieval baseline reference: the training dataset folder of the model (its train split) or a .npz "
+                            "from ReferenceSet.save, e.g. models/vlocnetpp_lite.reference.npz (default: no baseline)")
 
 
 def run(args: argparse.Namespace) -> int:
-    from vlocnetpp_core.evaluate import format_report, parse_lengths, positive_flag, write_outputs
+    from vlocnetpp_core.retrieval import open_reference
 
-    threshold = (positive_flag(args.threshold_m, "--threshold-m"), positive_flag(args.threshold_deg, "--threshold-deg"))
-    thresholds = list(DEFAULT_THRESHOLDS[:1]) + ([threshold] if accuracy_key(*threshold) != accuracy_key(*DEFAULT_THRESHOLDS[0]) else [])
+    thresholds, lengths = thresholds_from_args(args), parse_lengths(args.odometry_lengths)
     if not (math.isfinite(args.max_gap_s) and args.max_gap_s > 0):
         raise UserError(f"--max-gap-s must be a positive number of seconds, got {args.max_gap_s}")
-    if args.samples < 0:
-        raise UserError(f"--samples must be >= 0, got {args.samples}")
-    results = collect_results(args.bag, args.ground_truth_topic, args.max_gap_s, args.samples if args.plots else 0)
-    report = evaluate_sequences(results, thresholds, parse_lengths(args.odometry_lengths), CLASS_NAMES)
+    check_report_args(args)
+    reference = open_reference(args.reference) if args.reference else None
+    results, descriptors = collect_results(args.bag, args.ground_truth_topic, args.max_gap_s, args.samples if args.plots else 0,
+                                           describe=reference is not None)
+    report = evaluate_sequences(results, thresholds, lengths, CLASS_NAMES)
+    if reference is not None:
+        add_baseline(report, results, descriptors, reference, thresholds)
     report["meta"] = {"bag": str(args.bag)}
     print(format_report(report, {r.name: len(r.stamps) for r in results}))
     if any(r.rel_t is None for r in results):

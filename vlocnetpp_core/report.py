@@ -1,0 +1,251 @@
+"""The evaluation report shared by ``evaluate``, ``evaluate-bag`` and ``demo``: flags, table, baseline, files.
+
+A report is the dict of :func:`vlocnetpp_core.metrics.evaluate_sequences` (``overall`` and
+``per_sequence``, each with ``pose``, ``odometry``, ``segmentation``, ``timing``) plus ``meta``
+and, when a retrieval reference was given, ``baseline``: the same pose metrics for the
+nearest-neighbour retrieval baseline (:mod:`vlocnetpp_core.retrieval`) on the same frames, and
+whether the network beats it (``network_beats_baseline``: translation and rotation medians).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from vlocnetpp_core.errors import UserError
+from vlocnetpp_core.metrics import DEFAULT_THRESHOLDS, SequenceResult, accuracy_key, evaluate_sequences
+
+BASELINE_NAME = "retrieval"
+BASELINE_METHOD = "pose of the nearest reference image (gradient thumbnails, cosine similarity; vlocnetpp_core.retrieval)"
+
+
+# --------------------------------------------------------------------------- flags
+
+
+def add_report_arguments(p: argparse.ArgumentParser, reference_help: str) -> None:
+    """The output, threshold and baseline flags common to ``evaluate`` and ``evaluate-bag``."""
+    p.add_argument("--json", default=None, metavar="OUT", help="write the metrics as JSON to OUT")
+    p.add_argument("--trajectories", default=None, metavar="DIR", help="write TUM trajectories per sequence (global_pose.tum, odometry.tum, ground_truth.tum)")
+    p.add_argument("--plots", default=None, metavar="DIR", help="write PNG plots (trajectories, errors, confusion matrix, segmentation strip)")
+    p.add_argument("--threshold-m", type=float, default=0.5, help="translation threshold of the second pose accuracy (default 0.5 m; 5 cm / 5 deg is always reported)")
+    p.add_argument("--threshold-deg", type=float, default=5.0, help="rotation threshold of the second pose accuracy (default 5 deg)")
+    p.add_argument("--odometry-lengths", default=None, metavar="L1,L2,...",
+                   help="KITTI-style segment lengths in metres (default: 10%%..80%% of the shortest sequence's path)")
+    p.add_argument("--samples", type=int, default=3, metavar="K", help="frames per sequence in the segmentation strip plot (default 3)")
+    p.add_argument("--reference", default=None, metavar="DIR|FILE.npz", help=reference_help)
+
+
+def positive_flag(value: float, flag: str) -> float:
+    if not (math.isfinite(value) and value > 0):
+        raise UserError(f"{flag} must be a positive number, got {value}")
+    return value
+
+
+def thresholds_from_args(args: argparse.Namespace) -> list[tuple[float, float]]:
+    """5 cm / 5 deg and ``--threshold-m/--threshold-deg`` (once when they are the same)."""
+    threshold = (positive_flag(args.threshold_m, "--threshold-m"), positive_flag(args.threshold_deg, "--threshold-deg"))
+    first = DEFAULT_THRESHOLDS[0]
+    return [first] + ([threshold] if accuracy_key(*threshold) != accuracy_key(*first) else [])
+
+
+def parse_lengths(text: str | None) -> list[float] | None:
+    """``"1,2.5,4"`` -> ``[1.0, 2.5, 4.0]`` (positive metres); None stays None."""
+    if text is None:
+        return None
+    try:
+        lengths = [float(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise UserError(f"--odometry-lengths must be comma-separated metres, got {text!r}") from None
+    if not lengths:
+        raise UserError("--odometry-lengths is empty")
+    for v in lengths:
+        positive_flag(v, "--odometry-lengths")
+    return lengths
+
+
+def check_report_args(args: argparse.Namespace) -> None:
+    """Fail before a (long) run when a flag is invalid or an output path cannot be written."""
+    thresholds_from_args(args)
+    parse_lengths(args.odometry_lengths)
+    if args.samples < 0:
+        raise UserError(f"--samples must be >= 0, got {args.samples}")
+    if args.json and Path(args.json).is_dir():
+        raise UserError(f"--json {args.json}: is a folder; give a file name")
+    for flag, folder in (("--trajectories", args.trajectories), ("--plots", args.plots)):
+        if folder and Path(folder).exists() and not Path(folder).is_dir():
+            raise UserError(f"{flag} {folder}: exists and is not a folder")
+    if args.reference and not Path(args.reference).exists():
+        raise UserError(f"--reference {args.reference}: not found (a dataset folder or a reference .npz)")
+
+
+# --------------------------------------------------------------------------- sequences
+
+
+def sequence_name(sequence_id: int) -> str:
+    """Folder / JSON name of a sequence: ``seq-XX``."""
+    return f"seq-{sequence_id:02d}"
+
+
+def sample_positions(n: int, k: int) -> set[int]:
+    """``k`` positions spread evenly over ``n`` frames (first and last included)."""
+    return set(np.linspace(0, n - 1, k).round().astype(int).tolist()) if n > 0 and k > 0 else set()
+
+
+# --------------------------------------------------------------------------- baseline
+
+
+def add_baseline(report: dict, results: Sequence[SequenceResult], descriptors: Sequence[np.ndarray], reference,
+                 thresholds: Sequence[tuple[float, float]] = DEFAULT_THRESHOLDS) -> dict:
+    """Score the retrieval baseline (``reference``: a :class:`~vlocnetpp_core.retrieval.ReferenceSet`) on the
+    frames of ``results`` (``descriptors[k] (N_k, D)``) and store it as ``report["baseline"]``."""
+    from vlocnetpp_core.retrieval import retrieval_results
+
+    scored = evaluate_sequences(retrieval_results(reference, results, descriptors), thresholds, [1.0])
+    net, base = report["overall"]["pose"], scored["overall"]["pose"]
+    report["baseline"] = {
+        "name": BASELINE_NAME,
+        "method": BASELINE_METHOD,
+        "reference": reference.source,
+        "reference_frames": len(reference),
+        "overall": {"pose": base},
+        "per_sequence": {name: {"pose": part["pose"]} for name, part in scored["per_sequence"].items()},
+        "network_beats_baseline": {
+            "translation": _less(net["median_translation_m"], base["median_translation_m"]),
+            "rotation": _less(net["median_rotation_deg"], base["median_rotation_deg"]),
+        },
+    }
+    return report
+
+
+def _less(a: float | None, b: float | None) -> bool | None:
+    return None if a is None or b is None else bool(a < b)
+
+
+def baseline_verdict(report: dict) -> str | None:
+    """One line comparing the network's median pose errors with the baseline's, or None without a baseline."""
+    base = report.get("baseline")
+    if not base:
+        return None
+    net, ref = report["overall"]["pose"], base["overall"]["pose"]
+    beats = base["network_beats_baseline"]
+    if beats["translation"] and beats["rotation"]:
+        verdict = "the network beats retrieval"
+    elif beats["translation"] or beats["rotation"]:
+        verdict = f"the network beats retrieval in {'translation' if beats['translation'] else 'rotation'} only"
+    else:
+        verdict = "the network does NOT beat retrieval"
+    return (f"{verdict}: median {_num(net['median_translation_m'], '.3f')} m / {_num(net['median_rotation_deg'], '.2f')} deg against "
+            f"{_num(ref['median_translation_m'], '.3f')} m / {_num(ref['median_rotation_deg'], '.2f')} deg "
+            f"(nearest of {base['reference_frames']} reference images of {base['reference']})")
+
+
+# --------------------------------------------------------------------------- table
+
+
+def _pct(v: float | None, digits: int = 1) -> str:
+    return "-" if v is None else f"{100.0 * v:.{digits}f}"
+
+
+def _num(v: float | None, fmt: str) -> str:
+    return "-" if v is None else format(v, fmt)
+
+
+def format_report(report: dict, frames: dict[str, int] | None = None) -> str:
+    """A readable table: per sequence and overall median errors, pose accuracies, odometry errors, mIoU, ms/frame;
+    the retrieval baseline's overall row under it when the report has one."""
+    overall = report["overall"]
+    acc_keys = [k for k in overall["pose"] if k.startswith("accuracy_")]
+    headers = ["sequence", "frames", "median t [m]", "median R [deg]"]
+    headers += [k.removeprefix("accuracy_").replace("_", "/") + " [%]" for k in acc_keys]
+    headers += ["VO t [%]", "VO R [deg/m]", "mIoU [%]", "pix acc [%]", "ms/frame"]
+    frames = frames or {}
+    empty = {"odometry": {"translation_error_percent": None, "rotation_error_deg_per_m": None},
+             "segmentation": {"miou": None, "pixel_accuracy": None}, "timing": {"mean_ms": None}}
+
+    def row(name: str, part: dict, n: int | None) -> list[str]:
+        part = {**empty, **part}
+        pose, odo, seg, tim = part["pose"], part["odometry"], part["segmentation"], part["timing"]
+        return [
+            name,
+            "-" if n is None else str(n),
+            _num(pose["median_translation_m"], ".3f"),
+            _num(pose["median_rotation_deg"], ".2f"),
+            *[_pct(pose.get(k)) for k in acc_keys],
+            _num(odo["translation_error_percent"], ".2f"),
+            _num(odo["rotation_error_deg_per_m"], ".3f"),
+            _pct(seg["miou"]),
+            _pct(seg["pixel_accuracy"]),
+            _num(tim["mean_ms"], ".1f"),
+        ]
+
+    rows = [row(name, part, frames.get(name)) for name, part in report["per_sequence"].items()]
+    total = sum(frames.values()) if frames else None
+    rows.append(row("overall", overall, total))
+    base = report.get("baseline")
+    if base:
+        rows.append(row(base["name"], base["overall"], total))
+    widths = [max(len(h), *(len(r[c]) for r in rows)) for c, h in enumerate(headers)]
+    fmt = "  ".join(f"{{:<{w}}}" if c == 0 else f"{{:>{w}}}" for c, w in enumerate(widths))
+    rule = "  ".join("-" * w for w in widths)
+    n_seq = len(report["per_sequence"])
+    lines = [fmt.format(*headers), rule, *[fmt.format(*r) for r in rows[:n_seq]], rule, *[fmt.format(*r) for r in rows[n_seq:]]]
+    verdict = baseline_verdict(report)
+    if verdict:
+        lines.append(verdict)
+    lengths = overall["odometry"]["lengths_m"]
+    lines.append(f"odometry segment lengths [m]: {', '.join(f'{v:g}' for v in lengths) if lengths else '- (sequences too short)'}")
+    iou = {k: v for k, v in overall["segmentation"]["iou"].items() if v is not None}
+    if iou:
+        lines.append("IoU [%] (overall): " + ", ".join(f"{k} {100 * v:.1f}" for k, v in iou.items()))
+    tim = overall["timing"]
+    if tim["median_ms"] is not None:
+        lines.append(f"time per frame: mean {tim['mean_ms']:.1f} ms, median {tim['median_ms']:.1f} ms")
+    return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------- files
+
+
+def write_json(path: str | Path, data: dict) -> None:
+    """Write ``data`` as indented JSON, atomically (temporary file renamed into place)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(json.dumps(data, indent=2, allow_nan=False) + "\n")
+    os.replace(tmp, path)
+
+
+def write_trajectories(folder: str | Path, results: Iterable[SequenceResult]) -> list[Path]:
+    """``<folder>/<seq>/{ground_truth,global_pose,odometry}.tum`` (odometry only when predicted)."""
+    from vlocnetpp_core.trajectory import write_tum
+
+    written = []
+    for r in results:
+        sub = Path(folder) / r.name
+        for name, traj in (("ground_truth", r.ground_truth()), ("global_pose", r.global_pose()), ("odometry", r.odometry())):
+            if traj is not None:
+                write_tum(sub / f"{name}.tum", traj)
+                written.append(sub / f"{name}.tum")
+    return written
+
+
+def write_outputs(report: dict, results: list[SequenceResult], class_names: Sequence[str], json_path: str | Path | None = None,
+                  trajectories: str | Path | None = None, plots: str | Path | None = None) -> None:
+    """Write the report as JSON, the TUM trajectories and the plots, where asked, and say where they went."""
+    if json_path:
+        write_json(json_path, report)
+        print(f"metrics: {json_path}")
+    if trajectories:
+        write_trajectories(trajectories, results)
+        print(f"trajectories (TUM): {trajectories}")
+    if plots:
+        from vlocnetpp_core.plots import write_plots
+
+        write_plots(plots, results, class_names)
+        print(f"plots: {plots}")
