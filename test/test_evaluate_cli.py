@@ -20,8 +20,8 @@ FRAMES = 12
 @pytest.fixture(scope="module")
 def evaluated(tmp_path_factory):
     from vlocnetpp_core.checkpoint import save_checkpoint
-    from vlocnetpp_core.data.synth import render_dataset
     from vlocnetpp_core.model import VLocNetPP, load_model_config
+    from vlocnetpp_core.synth import render_dataset
 
     tmp = tmp_path_factory.mktemp("evaluate")
     render_dataset(tmp / "data", train_loops=1, test_loops=1, frames_per_loop=FRAMES, size=(160, 96), progress=False)

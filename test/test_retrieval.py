@@ -15,7 +15,7 @@ from vlocnetpp_core.retrieval import ReferenceSet, describe, open_reference, ref
 @pytest.fixture(scope="module")
 def campus(tmp_path_factory):
     """Eight training visits (one lap each, every circuit and direction twice) and one fresh visit (another seed) of the synthetic campus."""
-    from vlocnetpp_core.data.synth import render_dataset
+    from vlocnetpp_core.synth import render_dataset
 
     tmp = tmp_path_factory.mktemp("retrieval")
     render_dataset(tmp / "train", seed=0, train_loops=8, test_loops=0, frames_per_loop=120, size=(160, 90), progress=False)

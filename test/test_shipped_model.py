@@ -19,10 +19,10 @@ import torch
 from vlocnetpp_core import geometry
 from vlocnetpp_core.checkpoint import load_checkpoint, save_checkpoint, shipped_checkpoint
 from vlocnetpp_core.data import open_dataset
-from vlocnetpp_core.data.synth import render_dataset
 from vlocnetpp_core.localizer import Localizer
 from vlocnetpp_core.metrics import confusion_matrix, segmentation_metrics
 from vlocnetpp_core.model import VLocNetPP
+from vlocnetpp_core.synth import render_dataset
 
 
 @pytest.fixture(scope="module")

@@ -15,10 +15,10 @@ import torch.nn.functional as F
 from vlocnetpp_core import geometry
 from vlocnetpp_core.classes import NUM_CLASSES, colorize
 from vlocnetpp_core.data.pfm import read_pfm
-from vlocnetpp_core.data.synth import Campus, default_intrinsics, plan_visit, render_dataset, render_frame
-from vlocnetpp_core.data.synth.campus import BUILDING, GRASS, ROAD, SIDEWALK, SKY
-from vlocnetpp_core.data.synth.prims import BOX
 from vlocnetpp_core.errors import UserError
+from vlocnetpp_core.synth import Campus, default_intrinsics, plan_visit, render_dataset, render_frame
+from vlocnetpp_core.synth.campus import BUILDING, GRASS, ROAD, SIDEWALK, SKY
+from vlocnetpp_core.synth.prims import BOX
 
 SMALL = dict(train_loops=2, test_loops=1, frames_per_loop=5, size=(96, 54), progress=False)
 

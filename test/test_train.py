@@ -18,8 +18,8 @@ from conftest import REPO
 
 from vlocnetpp_core.checkpoint import load_checkpoint
 from vlocnetpp_core.cli import main as cli
-from vlocnetpp_core.data.synth import render_dataset
 from vlocnetpp_core.model import load_model_config
+from vlocnetpp_core.synth import render_dataset
 
 
 @pytest.fixture(scope="module")

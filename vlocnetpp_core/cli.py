@@ -16,7 +16,7 @@ from vlocnetpp_core.errors import UserError
 # name -> (module, one-line help, aliases)
 COMMANDS: dict[str, tuple[str, str, tuple[str, ...]]] = {
     "demo": ("vlocnetpp_core.demo", "end-to-end demo: synth test loops -> bag -> node -> evaluate", ()),
-    "synth": ("vlocnetpp_core.data.synth_cli", "render a procedural DeepLoc-format campus dataset", ()),
+    "synth": ("vlocnetpp_core.synth.cli", "render a procedural DeepLoc-format campus dataset", ()),
     "data-info": ("vlocnetpp_core.data.check", "summarise and sanity-check a dataset (run before training)", ()),
     "model-info": ("vlocnetpp_core.model.info", "parameter counts per stream of a model config", ()),
     "train": ("vlocnetpp_core.train", "train a stage (stl-loc, stl-vo, stl-seg, mtl)", ()),

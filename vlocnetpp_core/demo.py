@@ -50,10 +50,10 @@ def run(args: argparse.Namespace) -> int:
     from vlocnetpp_core.checkpoint import shipped_checkpoint
     from vlocnetpp_core.classes import CLASS_NAMES
     from vlocnetpp_core.data import open_dataset
-    from vlocnetpp_core.data.synth import render_dataset
     from vlocnetpp_core.metrics import evaluate_sequences
     from vlocnetpp_core.report import add_baseline, format_report, write_outputs
     from vlocnetpp_core.retrieval import ReferenceSet, reference_of
+    from vlocnetpp_core.synth import render_dataset
 
     if args.seed == TRAINING_SEED:
         raise UserError(f"--seed {TRAINING_SEED} is the seed the shipped model was trained on; pick another for a fair test")

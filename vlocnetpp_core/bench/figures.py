@@ -30,8 +30,8 @@ def synth_frames(count: int, size: tuple[int, int], scene: str = "campus", seed:
     Returns the frames and ``{"synth_frame": s, "campus_build": s}``: the median render time of
     one frame (:func:`render_frame` only; building the campus is timed separately, once).
     """
-    from vlocnetpp_core.data.synth import default_intrinsics, plan_visit, render_frame
-    from vlocnetpp_core.data.synth.campus import load_campus
+    from vlocnetpp_core.synth import default_intrinsics, plan_visit, render_frame
+    from vlocnetpp_core.synth.campus import load_campus
 
     start = time.perf_counter()
     campus = load_campus(scene)
@@ -242,7 +242,7 @@ def converter(workdir: Path, frames: int, size: tuple[int, int], repetitions: in
     converter's wall time on an otherwise idle machine with two cores (see ``run_bench``)."""
     from vlocnetpp_core.bag.convert import convert
     from vlocnetpp_core.data import open_dataset
-    from vlocnetpp_core.data.synth import render_dataset
+    from vlocnetpp_core.synth import render_dataset
 
     root = workdir / "converter_dataset"
     render_dataset(root, train_loops=0, test_loops=1, frames_per_loop=frames, size=size, progress=False, frame_interval=0.05)

@@ -25,11 +25,11 @@ import cv2
 import numpy as np
 
 from vlocnetpp_core.classes import CLASS_NAMES
-from vlocnetpp_core.data.synth import textures as tx
-from vlocnetpp_core.data.synth.ground import RES, GroundMap
-from vlocnetpp_core.data.synth.lighting import Lighting, sky_color
-from vlocnetpp_core.data.synth.prims import BOX, ELLIPSOID, Prims, PrimsBuilder
-from vlocnetpp_core.data.synth.route import rounded_rectangle
+from vlocnetpp_core.synth import textures as tx
+from vlocnetpp_core.synth.ground import RES, GroundMap
+from vlocnetpp_core.synth.lighting import Lighting, sky_color
+from vlocnetpp_core.synth.prims import BOX, ELLIPSOID, Prims, PrimsBuilder
+from vlocnetpp_core.synth.route import rounded_rectangle
 
 # class ids, in the order of vlocnetpp_core.classes.CLASS_NAMES
 BACKGROUND, SKY, ROAD, SIDEWALK, GRASS, VEGETATION, BUILDING, POLE, DYNAMIC, OTHER = range(10)

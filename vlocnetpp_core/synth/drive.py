@@ -20,10 +20,10 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from vlocnetpp_core import geometry
-from vlocnetpp_core.data.synth.campus import CAR_PAINTS, CAR_SIZE, LANES, SHIRTS, Campus, DynamicObject, stable_seed
-from vlocnetpp_core.data.synth.lighting import PRESETS, Lighting, sample_lighting
-from vlocnetpp_core.data.synth.render import level_rotation
-from vlocnetpp_core.data.synth.route import Route
+from vlocnetpp_core.synth.campus import CAR_PAINTS, CAR_SIZE, LANES, SHIRTS, Campus, DynamicObject, stable_seed
+from vlocnetpp_core.synth.lighting import PRESETS, Lighting, sample_lighting
+from vlocnetpp_core.synth.render import level_rotation
+from vlocnetpp_core.synth.route import Route
 
 CAMERA_HEIGHT = 1.2
 MAX_SPACING_M = 1.5  # default frame spacing never exceeds this (the DeepLoc reader splits at 2 m)

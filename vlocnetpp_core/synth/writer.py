@@ -31,12 +31,12 @@ import numpy as np
 
 from vlocnetpp_core.classes import colorize
 from vlocnetpp_core.data.pfm import write_pfm
-from vlocnetpp_core.data.synth.campus import load_campus
-from vlocnetpp_core.data.synth.drive import plan_visit
-from vlocnetpp_core.data.synth.preview import mosaic, top_down_map
-from vlocnetpp_core.data.synth.render import render_frame
 from vlocnetpp_core.errors import DataError, UserError
 from vlocnetpp_core.intrinsics import Intrinsics
+from vlocnetpp_core.synth.campus import load_campus
+from vlocnetpp_core.synth.drive import plan_visit
+from vlocnetpp_core.synth.preview import mosaic, top_down_map
+from vlocnetpp_core.synth.render import render_frame
 
 GENERATOR_VERSION = 1
 DEFAULT_FRAMES_PER_LOOP = 175

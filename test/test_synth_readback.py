@@ -17,7 +17,7 @@ SIZE = (160, 96)
 
 @pytest.fixture(scope="module")
 def campus(tmp_path_factory):
-    from vlocnetpp_core.data.synth import render_dataset
+    from vlocnetpp_core.synth import render_dataset
 
     out = tmp_path_factory.mktemp("synth") / "campus"
     render_dataset(out, scene="campus", seed=0, train_loops=1, test_loops=1, frames_per_loop=FRAMES, size=SIZE, progress=False)

@@ -22,7 +22,7 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-from vlocnetpp_core.data.synth.textures import Strip
+from vlocnetpp_core.synth.textures import Strip
 
 BOX, CYLINDER, ELLIPSOID = 0, 1, 2
 

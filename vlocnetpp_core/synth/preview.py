@@ -8,9 +8,9 @@ import cv2
 import numpy as np
 
 from vlocnetpp_core.classes import colorize
-from vlocnetpp_core.data.synth.campus import DEPTH_M, WIDTH_M, Campus
-from vlocnetpp_core.data.synth.ground import RES
-from vlocnetpp_core.data.synth.prims import BOX, ELLIPSOID
+from vlocnetpp_core.synth.campus import DEPTH_M, WIDTH_M, Campus
+from vlocnetpp_core.synth.ground import RES
+from vlocnetpp_core.synth.prims import BOX, ELLIPSOID
 
 TRAIN_COLORS = [(31, 119, 180), (23, 190, 207), (44, 160, 44), (148, 103, 189), (140, 86, 75), (127, 127, 127)]
 TEST_COLORS = [(214, 39, 40), (255, 127, 14), (227, 119, 194), (188, 189, 34)]

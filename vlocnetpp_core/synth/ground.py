@@ -10,7 +10,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from vlocnetpp_core.data.synth.textures import rgb, smooth_noise
+from vlocnetpp_core.synth.textures import rgb, smooth_noise
 
 RES = 0.1  # metres per cell
 SHIFT = 4  # sub-pixel bits for cv2 drawing

@@ -12,11 +12,11 @@ Modules: ``campus`` (layout), ``textures`` / ``ground`` (appearance), ``prims`` 
 ``preview`` and ``writer``.
 """
 
-from vlocnetpp_core.data.synth.campus import Campus, DynamicObject
-from vlocnetpp_core.data.synth.drive import Visit, plan_visit
-from vlocnetpp_core.data.synth.lighting import DEFAULT_LIGHTING, Lighting, sample_lighting
-from vlocnetpp_core.data.synth.render import render_frame
-from vlocnetpp_core.data.synth.writer import DEFAULT_FRAMES_PER_LOOP, default_intrinsics, render_dataset
+from vlocnetpp_core.synth.campus import Campus, DynamicObject
+from vlocnetpp_core.synth.drive import Visit, plan_visit
+from vlocnetpp_core.synth.lighting import DEFAULT_LIGHTING, Lighting, sample_lighting
+from vlocnetpp_core.synth.render import render_frame
+from vlocnetpp_core.synth.writer import DEFAULT_FRAMES_PER_LOOP, default_intrinsics, render_dataset
 
 __all__ = [
     "Campus",

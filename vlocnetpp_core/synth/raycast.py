@@ -19,9 +19,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from vlocnetpp_core.data.synth.campus import HILLS_RADIUS, Campus
-from vlocnetpp_core.data.synth.prims import BOX, ELLIPSOID, Prims
-from vlocnetpp_core.data.synth.textures import PPM
+from vlocnetpp_core.synth.campus import HILLS_RADIUS, Campus
+from vlocnetpp_core.synth.prims import BOX, ELLIPSOID, Prims
+from vlocnetpp_core.synth.textures import PPM
 
 NEAR = 0.05  # metres
 KMAX = 24  # footprint hits z-buffered per column (nearest first)

@@ -24,12 +24,12 @@ import cv2
 import numpy as np
 
 from vlocnetpp_core import geometry
-from vlocnetpp_core.data.synth.campus import HILLS_RADIUS, Campus, DynamicObject
-from vlocnetpp_core.data.synth.lighting import DEFAULT_LIGHTING, Lighting
-from vlocnetpp_core.data.synth.prims import CYLINDER, Prims
-from vlocnetpp_core.data.synth.raycast import E_OFFSET, GROUND, HILLS, SKY_CODE, LevelCamera, LevelImage, cast
-from vlocnetpp_core.data.synth.shade import shade
 from vlocnetpp_core.intrinsics import Intrinsics
+from vlocnetpp_core.synth.campus import HILLS_RADIUS, Campus, DynamicObject
+from vlocnetpp_core.synth.lighting import DEFAULT_LIGHTING, Lighting
+from vlocnetpp_core.synth.prims import CYLINDER, Prims
+from vlocnetpp_core.synth.raycast import E_OFFSET, GROUND, HILLS, SKY_CODE, LevelCamera, LevelImage, cast
+from vlocnetpp_core.synth.shade import shade
 
 MAX_TILT_DEG = 25.0  # pitch/roll the level render + homography supports
 

@@ -12,11 +12,11 @@ import math
 import cv2
 import numpy as np
 
-from vlocnetpp_core.data.synth.campus import HILLS_MAX_M, SKY, Campus
-from vlocnetpp_core.data.synth.ground import DETAIL_FADE, DETAIL_RES, MIP_LEVELS, OUTSIDE_RGB, RES
-from vlocnetpp_core.data.synth.lighting import Lighting
-from vlocnetpp_core.data.synth.raycast import E_OFFSET, HILLS, SKY_CODE, LevelCamera, LevelImage
-from vlocnetpp_core.data.synth.textures import LEVELS, PPM
+from vlocnetpp_core.synth.campus import HILLS_MAX_M, SKY, Campus
+from vlocnetpp_core.synth.ground import DETAIL_FADE, DETAIL_RES, MIP_LEVELS, OUTSIDE_RGB, RES
+from vlocnetpp_core.synth.lighting import Lighting
+from vlocnetpp_core.synth.raycast import E_OFFSET, HILLS, SKY_CODE, LevelCamera, LevelImage
+from vlocnetpp_core.synth.textures import LEVELS, PPM
 
 
 def remap_points(src: np.ndarray, x: np.ndarray, y: np.ndarray, border: int) -> np.ndarray:

@@ -16,7 +16,7 @@ def _size(text: str) -> tuple[int, int]:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from vlocnetpp_core.data.synth.writer import DEFAULT_FRAMES_PER_LOOP
+    from vlocnetpp_core.synth.writer import DEFAULT_FRAMES_PER_LOOP
 
     parser.add_argument("out", metavar="OUT", help="output folder (must not exist unless --force)")
     parser.add_argument("--scene", default="campus", metavar="S", help="campus to build: fixes geometry and textures (default: campus, the one the shipped model knows)")
@@ -36,7 +36,7 @@ def _terminate(signum, frame):  # SIGTERM unwinds like Ctrl-C, so the partial ou
 
 
 def run(args: argparse.Namespace) -> int:
-    from vlocnetpp_core.data.synth.writer import render_dataset
+    from vlocnetpp_core.synth.writer import render_dataset
 
     previous = signal.signal(signal.SIGTERM, _terminate) if threading.current_thread() is threading.main_thread() else None
     try:
