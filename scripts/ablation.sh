@@ -2,8 +2,11 @@
 # Scores checkpoints on fresh test loops of the synthetic campus for several visit seeds (the demo's
 # kind of data: 2 loops of 175 frames per seed; seed 0 trains and seed 11 validates the shipped
 # model, so neither may be listed) and prints one markdown table: each seed's metrics and their mean.
+# The retrieval baseline (pose of the nearest training image, REFERENCE: the descriptors of the training images)
+# is scored on the same frames and printed as the last rows.
 # Usage: bash scripts/ablation.sh [LABEL=]CHECKPOINT...
-#   env SEEDS (default "101 7 23 42"), LOOPS_DIR (default runs/test-loops), OUT (default runs/ablation)
+#   env SEEDS (default "101 7 23 42"), LOOPS_DIR (default runs/test-loops), OUT (default runs/ablation),
+#   REFERENCE (default models/vlocnetpp_lite.reference.npz)
 # Re-runs reuse the rendered loops and the scores already written (delete OUT to score again).
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -11,6 +14,7 @@ V=.venv/bin/vlocnetpp
 SEEDS=${SEEDS:-101 7 23 42}
 LOOPS_DIR=${LOOPS_DIR:-runs/test-loops}
 OUT=${OUT:-runs/ablation}
+REFERENCE=${REFERENCE:-models/vlocnetpp_lite.reference.npz}
 [ $# -gt 0 ] || { echo "usage: bash scripts/ablation.sh [LABEL=]CHECKPOINT..." >&2; exit 2; }
 mkdir -p "$LOOPS_DIR" "$OUT"
 for seed in $SEEDS; do
@@ -24,12 +28,12 @@ for arg in "$@"; do
   [ "$label" != "$arg" ] || label=$ckpt
   [ -f "$ckpt" ] || { echo "no checkpoint $ckpt" >&2; exit 2; }
   # scores are kept per checkpoint file (path, size and time), so a retrained checkpoint is scored again
-  slug=$(printf '%s' "$ckpt-$(stat -c %s-%Y "$ckpt")" | tr -c 'A-Za-z0-9._-' '_')
+  slug=$(printf '%s' "$ckpt-$(stat -c %s-%Y "$ckpt")-$(stat -c %s-%Y "$REFERENCE")" | tr -c 'A-Za-z0-9._-' '_')
   for seed in $SEEDS; do
     json="$OUT/$slug.seed$seed.json"
     if [ ! -f "$json" ]; then
       echo "scoring $label on seed $seed" >&2
-      $V evaluate --checkpoint "$ckpt" --data "$LOOPS_DIR/seed$seed" --json "$json.tmp" --no-progress > /dev/null && mv "$json.tmp" "$json"
+      $V evaluate --checkpoint "$ckpt" --data "$LOOPS_DIR/seed$seed" --reference "$REFERENCE" --json "$json.tmp" --no-progress > /dev/null && mv "$json.tmp" "$json"
     fi
   done
   rows+=("$label" "$OUT/$slug")
@@ -45,8 +49,10 @@ cols = [("median t [m]", "pose", "median_translation_m", 1, "{:.1f}"), ("median 
         ("mIoU [%]", "segmentation", "miou", 100, "{:.1f}")]
 print("| model | seed | " + " | ".join(c[0] for c in cols) + " |")
 print("|---|---|" + "---|" * len(cols))
-for label, prefix in zip(args[::2], args[1::2]):
-    per_seed = [json.load(open(f"{prefix}.seed{s}.json"))["overall"] for s in seeds]
+runs = [(label, [json.load(open(f"{prefix}.seed{s}.json")) for s in seeds]) for label, prefix in zip(args[::2], args[1::2])]
+runs.append(("retrieval (nearest training image)", [r["baseline"] for r in runs[0][1]]))
+for label, reports in runs:
+    per_seed = [r["overall"] for r in reports]
     values = [[m[group][key] * scale if m.get(group) else float("nan") for _, group, key, scale, _ in cols] for m in per_seed]
     for seed, v in zip(seeds, values):
         print(f"| {label} | {seed} | " + " | ".join(c[4].format(x) for c, x in zip(cols, v)) + " |")

@@ -112,7 +112,21 @@ def test_existing_output_is_refused_unless_forced(small, tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["exists"]  # no temporary folders left
 
 
-@pytest.mark.parametrize("bad", [dict(size=(8, 8)), dict(frames_per_loop=0), dict(train_loops=0, test_loops=0), dict(seed=-1), dict(scene="two\nlines")])
+def test_test_lane_offset_moves_the_test_visits_only():
+    """``--test-lane-offset``: the visit drives that far right of its circuit's centreline; nothing else changes."""
+    campus = Campus("campus")
+    plain, moved = plan_visit(campus, 4, "test", 1, 60), plan_visit(campus, 4, "test", 1, 60, lane_offset=3.0)
+    assert moved.pattern.lane == "offset +3.00 m" and moved.lighting == plain.lighting
+    assert (moved.pattern.circuit, moved.pattern.clockwise, moved.pattern.cruise_speed) == (
+        plain.pattern.circuit, plain.pattern.clockwise, plain.pattern.cruise_speed)
+    centreline = campus.circuits[moved.pattern.circuit].points
+    distance = np.linalg.norm(moved.t[:, None, :2] - centreline[None], axis=2).min(axis=1)
+    weave = moved.pattern.weave_amplitude
+    assert np.all(np.abs(distance - 3.0) <= weave + 0.1), (distance.min(), distance.max(), weave)  # + the 0.1 m vertex spacing
+
+
+@pytest.mark.parametrize("bad", [dict(size=(8, 8)), dict(frames_per_loop=0), dict(train_loops=0, test_loops=0), dict(seed=-1), dict(scene="two\nlines"),
+                                 dict(test_lane_offset=9.0), dict(test_lane_offset=float("nan"))])
 def test_bad_arguments_are_user_errors(tmp_path, bad):
     args = dict(SMALL, **bad)
     with pytest.raises(UserError):

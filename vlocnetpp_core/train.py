@@ -47,10 +47,12 @@ STREAM_SOURCE = {"global": "stl-loc", "odometry": "stl-vo", "semantic": "stl-seg
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--config", required=True, help="model config: 'paper', 'lite' or a YAML file")
-    p.add_argument("--data", required=True, help="dataset folder (DeepLoc layout or 7-Scenes scene)")
+    p.add_argument("--recipe", metavar="FILE", help="run a whole declarative schedule (datasets, stages, export; e.g. "
+                   "config/recipes/shipped.yaml) into --out, resumably; the other flags then come from the file (docs/training.md)")
+    p.add_argument("--config", help="model config: 'paper', 'lite' or a YAML file (required without --recipe)")
+    p.add_argument("--data", help="dataset folder (DeepLoc layout or 7-Scenes scene) (required without --recipe)")
     p.add_argument("--format", choices=("deeploc", "7scenes"), default=None, help="dataset format (default: detected)")
-    p.add_argument("--stage", required=True, choices=STAGES, help="training stage (paper's staged schedule)")
+    p.add_argument("--stage", choices=STAGES, help="training stage (paper's staged schedule) (required without --recipe)")
     p.add_argument("--out", required=True, help="run folder for checkpoints and logs")
     length = p.add_mutually_exclusive_group()
     length.add_argument("--steps", type=int, help="optimiser steps to train (total, including resumed ones)")
@@ -287,6 +289,13 @@ def _identity_fusion_init(model, margin: float = 8.0) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.recipe:
+        from vlocnetpp_core.recipe import run_recipe
+
+        return run_recipe(args.recipe, args.out)
+    missing = [f"--{k}" for k in ("config", "data", "stage") if getattr(args, k) is None]
+    if missing:
+        raise UserError(f"{', '.join(missing)} required (or --recipe FILE)")
     from vlocnetpp_core.checkpoint import save_checkpoint
     from vlocnetpp_core.data import ClipDataset, make_transform, open_dataset
     from vlocnetpp_core.losses import VLocNetLoss

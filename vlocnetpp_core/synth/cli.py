@@ -27,6 +27,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--size", type=_size, default=(320, 180), metavar="WxH", help="image size WIDTHxHEIGHT (default: 320x180)")
     parser.add_argument("--frame-interval", type=float, default=None, metavar="SECONDS",
                         help="time between frames, e.g. 0.05 for 20 Hz video (default: spread each loop's frames over one lap, ~1 m apart)")
+    parser.add_argument("--test-lane-offset", type=float, default=None, metavar="METRES",
+                        help="drive the test loops this far right of the circuit centreline instead of in a lane (the lanes are at "
+                             "+-1.5 m, the sidewalks at +-4.25 m), e.g. 3 or 0 for loops between the lanes training visits drove")
     parser.add_argument("--force", action="store_true", help="replace OUT if it exists")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
@@ -43,7 +46,7 @@ def run(args: argparse.Namespace) -> int:
         s = render_dataset(
             args.out, scene=args.scene, seed=args.seed, train_loops=args.loops, test_loops=args.test_loops,
             frames_per_loop=args.frames_per_loop, size=args.size, force=args.force, progress=not args.no_progress,
-            frame_interval=args.frame_interval,
+            frame_interval=args.frame_interval, test_lane_offset=args.test_lane_offset,
         )
     finally:
         if previous is not None:

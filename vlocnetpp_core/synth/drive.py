@@ -15,7 +15,7 @@ does not depend on the seed.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
@@ -133,8 +133,13 @@ def choose_pattern(rng: np.random.Generator, split: str, loop: int, combo_offset
     )
 
 
-def plan_visit(campus: Campus, seed: int, split: str, loop: int, frames: int, frame_interval: float | None = None) -> Visit:
-    """The ``loop``-th visit of ``split`` for ``seed``: ``frames`` camera poses plus lighting and movers."""
+def plan_visit(campus: Campus, seed: int, split: str, loop: int, frames: int, frame_interval: float | None = None,
+               lane_offset: float | None = None) -> Visit:
+    """The ``loop``-th visit of ``split`` for ``seed``: ``frames`` camera poses plus lighting and movers.
+
+    ``lane_offset`` (metres right of the circuit's centreline) replaces the lane the visit drew, e.g.
+    to drive between the lanes that training visits use; everything else about the visit is unchanged.
+    """
     if split not in SPLIT_CODES:
         raise ValueError(f"split must be train or test, got {split!r}")
     if frames < 1:
@@ -143,11 +148,14 @@ def plan_visit(campus: Campus, seed: int, split: str, loop: int, frames: int, fr
     offset = int(np.random.default_rng(base_seed).integers(len(COMBOS)))
     rng = np.random.default_rng([base_seed, SPLIT_CODES[split], int(loop)])
     pattern = choose_pattern(rng, split, loop, offset)
+    lateral = LANES[pattern.lane] if lane_offset is None else float(lane_offset)
+    if lane_offset is not None:
+        pattern = replace(pattern, lane=f"offset {lateral:+.2f} m")
     lighting = sample_lighting(rng, PRESETS[(loop + offset) % len(PRESETS)] if split == "train" else None)
     base = campus.circuits[pattern.circuit]
     if pattern.clockwise:
         base = base.reversed()
-    path = base.offset(LANES[pattern.lane])
+    path = base.offset(lateral)
     L = path.length
     s_start = pattern.start_fraction * L
     lap = np.arange(0.0, L + _DS, _DS)

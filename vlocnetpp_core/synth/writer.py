@@ -17,6 +17,7 @@ run leaves no ``OUT`` behind. The same ``(scene, seed, sizes)`` give the same by
 from __future__ import annotations
 
 import json
+import math
 import os
 import re
 import shutil
@@ -39,6 +40,7 @@ from vlocnetpp_core.synth.preview import mosaic, top_down_map
 from vlocnetpp_core.synth.render import render_frame
 
 GENERATOR_VERSION = 1
+MAX_LANE_OFFSET_M = 4.5  # the outer edge of the sidewalks' driving line
 DEFAULT_FRAMES_PER_LOOP = 175
 ID_STRIDE = 10000
 MOSAIC_ROWS_PER_SPLIT = 4
@@ -87,14 +89,19 @@ def render_dataset(
     force: bool = False,
     progress: bool = True,
     frame_interval: float | None = None,
+    test_lane_offset: float | None = None,
 ) -> dict:
     """Render ``train_loops`` + ``test_loops`` visits of campus ``scene`` into ``out``; returns a summary dict.
 
     ``frame_interval`` (seconds) fixes the time between frames (``0.05`` = 20 Hz video); by
-    default each loop's frames are spread over one lap of its circuit. Raises
-    :class:`UserError` for bad arguments or an existing ``out`` without ``force``.
+    default each loop's frames are spread over one lap of its circuit. ``test_lane_offset``
+    (metres right of the centreline, at most :data:`MAX_LANE_OFFSET_M` either way) drives the test
+    loops there instead of in one of the four lanes. Raises :class:`UserError` for bad arguments or
+    an existing ``out`` without ``force``.
     """
     w, h = _check_args(scene, seed, train_loops, test_loops, frames_per_loop, size, frame_interval)
+    if test_lane_offset is not None and not (math.isfinite(test_lane_offset) and abs(test_lane_offset) <= MAX_LANE_OFFSET_M):
+        raise UserError(f"--test-lane-offset must be within +-{MAX_LANE_OFFSET_M:g} m of the centreline (the sidewalks), got {test_lane_offset}")
     out = Path(out)
     if out.exists() and not force:
         raise UserError(f"{out} already exists (use --force to replace it)")
@@ -103,7 +110,8 @@ def render_dataset(
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
     try:
-        summary = _render_into(tmp, scene, int(seed), train_loops, test_loops, frames_per_loop, (w, h), progress, frame_interval)
+        summary = _render_into(tmp, scene, int(seed), train_loops, test_loops, frames_per_loop, (w, h), progress, frame_interval,
+                               test_lane_offset)
         if out.exists():
             old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
             os.replace(out, old / "data")
@@ -124,7 +132,7 @@ def render_dataset(
 
 
 def _render_into(root: Path, scene: str, seed: int, train_loops: int, test_loops: int, frames: int, size: tuple[int, int],
-                 progress: bool, frame_interval: float | None) -> dict:
+                 progress: bool, frame_interval: float | None, test_lane_offset: float | None = None) -> dict:
     from tqdm import tqdm
 
     t_start = time.perf_counter()
@@ -152,7 +160,7 @@ def _render_into(root: Path, scene: str, seed: int, train_loops: int, test_loops
             lines = [f"# synthetic campus {scene} seed {seed}", "ImageName x y z qw qx qy qz"]
             picks = set(np.linspace(0, n_loops * frames - 1, MOSAIC_ROWS_PER_SPLIT).round().astype(int).tolist())
             for loop in range(n_loops):
-                visit = plan_visit(campus, seed, split, loop, frames, frame_interval)
+                visit = plan_visit(campus, seed, split, loop, frames, frame_interval, test_lane_offset if split == "test" else None)
                 info = visit.info()
                 info["first_id"] = loop * ID_STRIDE + 1
                 loop_info.append(info)

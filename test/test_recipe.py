@@ -1,0 +1,93 @@
+"""`vlocnetpp train --recipe`: datasets, stages (with inits, schedules, a parallel group), export, resume, errors."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import yaml
+
+from vlocnetpp_core.checkpoint import read_checkpoint_meta
+from vlocnetpp_core.cli import main as cli
+from vlocnetpp_core.model import load_model_config
+from vlocnetpp_core.recipe import load_recipe, stage_commands
+from vlocnetpp_core.retrieval import ReferenceSet
+
+
+def _recipe(tmp_path, **changes) -> dict:
+    cfg = load_model_config("lite").to_dict()
+    cfg["input_size"] = [64, 48]
+    (tmp_path / "tiny.yaml").write_text(yaml.safe_dump(cfg))
+    recipe = {
+        "config": str(tmp_path / "tiny.yaml"),
+        "datasets": {"campus": {"synth": {"seed": 0, "loops": 3, "test_loops": 1, "frames_per_loop": 8, "size": [64, 48]}}},
+        "defaults": {"data": "campus", "batch_size": 2, "clip_len": 2, "workers": 0, "val_every": 2},
+        "stages": [
+            {"name": "vo", "stage": "stl-vo", "schedule": [{"steps": 2, "lr": 1e-3}], "parallel": "a", "threads": 1},
+            {"name": "seg", "stage": "stl-seg", "schedule": [{"steps": 2, "lr": 1e-3}], "parallel": "a", "threads": 1},
+            {"name": "loc", "stage": "stl-loc", "init": ["vo"], "s_q_init": 0,
+             "schedule": [{"steps": 2, "lr": 1e-3}, {"steps": 3, "lr": 1e-4}]},
+        ],
+        "export": {"stage": "loc", "to": str(tmp_path / "models" / "tiny"), "dtype": "float16", "reference": "campus"},
+    }
+    recipe.update(changes)
+    path = tmp_path / "recipe.yaml"
+    path.write_text(yaml.safe_dump(recipe))
+    return path
+
+
+def test_recipe_runs_every_stage_exports_and_resumes(tmp_path, capsys):
+    path, out = _recipe(tmp_path), tmp_path / "run"
+    assert cli(["train", "--recipe", str(path), "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "vo+seg:" in printed and "loc:" in printed and "export:" in printed
+    timings = json.loads((out / "timings.json").read_text())
+    assert set(timings) == {"vo+seg", "loc"} and all(v > 0 for v in timings.values())
+    log = [json.loads(line) for line in (out / "loc" / "log.jsonl").read_text().splitlines() if "validation" not in line]
+    assert [(r["step"], r["lr"]) for r in log] == [(1, 1e-3), (2, 1e-3), (3, 1e-4)]  # the schedule, resumed at the step-down
+    meta = read_checkpoint_meta(tmp_path / "models" / "tiny")
+    assert meta["training"]["stage"] == "stl-loc" and meta["training"]["init"][0]["path"].endswith("vo/best.safetensors")
+    reference = ReferenceSet.load(tmp_path / "models" / "tiny.reference.npz")
+    assert len(reference) == 24 and "dataset 'campus'" in reference.source  # the 3 training loops of 8 frames
+
+    recipe = load_recipe(path)
+    assert all(stage_commands(s, recipe, out) == [] for s in recipe.stages)  # finished: nothing left to run
+    assert cli(["train", "--recipe", str(path), "--out", str(out)]) == 0
+    assert "stage " not in capsys.readouterr().out  # no stage ran again
+    assert json.loads((out / "timings.json").read_text()) == timings
+
+
+def test_recipe_resumes_an_unfinished_schedule(tmp_path):
+    path, out = _recipe(tmp_path), tmp_path / "run"
+    recipe = load_recipe(path)
+    loc = recipe.stages[2]
+    (out / "loc").mkdir(parents=True)
+    (out / "loc" / "train_state.json").write_text(json.dumps({"step": 2}))
+    (command,) = stage_commands(loc, recipe, out)
+    assert command[command.index("--steps") + 1] == "3" and command[command.index("--lr") + 1] == "0.0001" and "--resume" in command
+    assert command.count("--init") == 1 and command[command.index("--init") + 1] == str(out / "vo" / "best.safetensors")
+
+
+@pytest.mark.parametrize("change, message", [
+    ({"stages": [{"name": "loc", "stage": "stl-loc", "init": ["vo"], "schedule": [{"steps": 2, "lr": 1e-3}]}]}, "init 'vo' is not an earlier stage"),
+    ({"stages": [{"name": "vo", "stage": "stl-vo", "schedule": [{"steps": 2}]}]}, "'schedule' must be a list"),
+    ({"stages": [{"name": "vo", "stage": "stl-vo", "data": "nope", "schedule": [{"steps": 2, "lr": 1e-3}]}]}, "data 'nope' is not one of"),
+    ({"export": {"stage": "mtl"}}, "export stage 'mtl'"),
+])
+def test_recipe_mistakes_are_one_line_naming_the_file(tmp_path, capsys, change, message):
+    path = _recipe(tmp_path, **change)
+    assert cli(["train", "--recipe", str(path), "--out", str(tmp_path / "run")]) == 2
+    err = capsys.readouterr().err
+    assert message in err and "recipe.yaml" in err and "Traceback" not in err
+
+
+def test_a_failing_stage_names_its_log(tmp_path, capsys):
+    path = _recipe(tmp_path, stages=[{"name": "vo", "stage": "stl-vo", "schedule": [{"steps": 2, "lr": 1e-3}], "frame_strides": [0]}], export=None)
+    assert cli(["train", "--recipe", str(path), "--out", str(tmp_path / "run")]) == 2
+    err = capsys.readouterr().err
+    assert "stage vo failed" in err and str(tmp_path / "run" / "vo.log") in err
+
+
+def test_train_without_recipe_needs_config_data_and_stage(tmp_path, capsys):
+    assert cli(["train", "--out", str(tmp_path / "run"), "--config", "lite"]) == 2
+    assert "--data, --stage required (or --recipe FILE)" in capsys.readouterr().err

@@ -1,0 +1,240 @@
+"""``vlocnetpp train --recipe FILE --out DIR``: a whole training schedule from one declarative YAML file.
+
+A recipe names its datasets (rendered by ``synth`` when missing, or existing folders), the train
+flags every stage shares, the stages in order (each a ``vlocnetpp train`` run in ``DIR/<name>``
+with its own flags, ``--init`` sources and learning-rate schedule) and the export of the final
+weights. Example (``config/recipes/shipped.yaml`` is the shipped model's)::
+
+    config: lite
+    datasets:
+      campus: {synth: {scene: campus, seed: 0, loops: 8, test_loops: 1, frames_per_loop: 250}}
+    defaults: {data: campus, batch_size: 8, clip_len: 3}
+    stages:
+      - {name: stl-vo, stage: stl-vo, schedule: [{steps: 1500, lr: 1.0e-3}]}
+      - {name: stl-loc, stage: stl-loc, init: [stl-vo], schedule: [{steps: 6000, lr: 1.0e-3}, {steps: 8000, lr: 1.0e-4}]}
+    export: {stage: stl-loc, to: models/my_model, dtype: float16, reference: campus}
+
+Stage keys: ``name`` (run folder), ``stage``, ``schedule`` (list of ``{steps, lr}``: train to
+``steps`` in total at ``lr``, resuming from the previous entry), ``init`` (stage names: their
+``best`` weights, in order), ``data`` / ``val_data`` (dataset names), ``parallel`` (stages with
+the same value that follow each other run side by side, e.g. two single-thread stages on two
+cores), and any other ``vlocnetpp train`` flag (``threads``, ``frame_strides``, ``s_q_init``,
+``val_split``, ...; lists become comma-separated). Every stage runs as its own process (its
+thread count is its own), logs to ``DIR/<name>.log``, and is resumable: running the recipe
+again skips finished schedule entries and resumes an interrupted one exactly. The time of each
+stage is added to ``DIR/timings.json`` and printed.
+
+``export``: the ``weights`` (``best``, default, or ``last``) of ``stage`` written to ``to``
+(``NAME``: ``NAME.safetensors`` + ``NAME.json``) in ``dtype``, with the covariance calibration
+of its validation (or, when it did not validate, of the stages named in ``calibration``:
+``{pose: STAGE, odometry: STAGE}``), and the retrieval reference of the ``reference`` dataset's
+training images as ``NAME.reference.npz`` (the baseline ``evaluate`` and the demo compare with).
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import yaml
+
+from vlocnetpp_core.errors import UserError
+
+STAGE_KEYS = {"name", "stage", "schedule", "init", "data", "val_data", "parallel"}
+
+
+@dataclass
+class Stage:
+    """One ``vlocnetpp train`` run of a recipe: its flags (argparse names, ``_`` separated) and schedule."""
+
+    name: str
+    stage: str
+    schedule: list[tuple[int, float]]
+    init: list[str] = field(default_factory=list)
+    flags: dict = field(default_factory=dict)
+    parallel: str | None = None
+
+    @property
+    def steps(self) -> int:
+        return self.schedule[-1][0]
+
+
+@dataclass
+class Recipe:
+    path: Path
+    config: str
+    datasets: dict[str, dict]
+    stages: list[Stage]
+    export: dict | None
+
+
+def load_recipe(path: str | Path) -> Recipe:
+    """Parse and check a recipe file; ``UserError`` naming the file and the key on any mistake."""
+    path = Path(path)
+    try:
+        raw = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError) as err:
+        raise UserError(f"{path}: cannot read the recipe ({err})") from None
+    if not isinstance(raw, dict) or "stages" not in raw or "config" not in raw:
+        raise UserError(f"{path}: a recipe is a mapping with at least 'config' and 'stages'")
+    datasets = raw.get("datasets") or {}
+    defaults = {k.replace("-", "_"): v for k, v in (raw.get("defaults") or {}).items()}
+    stages, names = [], set()
+    for k, entry in enumerate(raw["stages"]):
+        entry = {**defaults, **{key.replace("-", "_"): v for key, v in entry.items()}}
+        where = f"{path}: stage {k} ({entry.get('name', 'unnamed')})"
+        for key in ("name", "stage", "schedule"):
+            if key not in entry:
+                raise UserError(f"{where}: missing '{key}'")
+        try:
+            schedule = [(int(s["steps"]), float(s["lr"])) for s in entry["schedule"]]
+        except (TypeError, KeyError, ValueError):
+            raise UserError(f"{where}: 'schedule' must be a list of {{steps: N, lr: R}}") from None
+        if not schedule or any(b[0] < a[0] for a, b in zip(schedule[:-1], schedule[1:], strict=True)):
+            raise UserError(f"{where}: 'schedule' steps must be given in increasing order")
+        for ref in entry.get("init") or []:
+            if ref not in names:
+                raise UserError(f"{where}: init '{ref}' is not an earlier stage")
+        for key in ("data", "val_data"):
+            if key in entry and entry[key] not in datasets:
+                raise UserError(f"{where}: {key} '{entry[key]}' is not one of the recipe's datasets ({', '.join(datasets) or 'none'})")
+        names.add(entry["name"])
+        flags = {key: v for key, v in entry.items() if key not in STAGE_KEYS - {"data", "val_data"}}
+        stages.append(Stage(entry["name"], entry["stage"], schedule, list(entry.get("init") or []), flags, entry.get("parallel")))
+    export = raw.get("export")
+    if export is not None and export.get("stage") not in names:
+        raise UserError(f"{path}: export stage '{export.get('stage')}' is not one of the stages")
+    return Recipe(path, str(raw["config"]), datasets, stages, export)
+
+
+# --------------------------------------------------------------------------- running
+
+
+def dataset_path(recipe: Recipe, name: str, out: Path) -> Path:
+    spec = recipe.datasets[name]
+    return Path(spec["path"]) if "path" in spec else out / "data" / name
+
+
+def prepare_datasets(recipe: Recipe, out: Path, log) -> None:
+    """Render every ``synth`` dataset that is not there yet (``OUT/data/NAME``)."""
+    from vlocnetpp_core.synth import render_dataset
+
+    for name, spec in recipe.datasets.items():
+        target = dataset_path(recipe, name, out)
+        if "path" in spec:
+            if not target.is_dir():
+                raise UserError(f"{recipe.path}: dataset '{name}': {target} not found")
+            continue
+        if target.is_dir():
+            continue
+        t0 = time.monotonic()
+        s = spec["synth"]
+        render_dataset(target, scene=s.get("scene", "campus"), seed=int(s.get("seed", 0)), train_loops=int(s.get("loops", 4)),
+                       test_loops=int(s.get("test_loops", 2)), frames_per_loop=int(s.get("frames_per_loop", 175)),
+                       size=tuple(s.get("size", (320, 180))), progress=False)
+        log(f"dataset {name}: rendered in {time.monotonic() - t0:.0f} s")
+
+
+def _flag_args(flags: dict, recipe: Recipe, out: Path) -> list[str]:
+    args = []
+    for key, value in flags.items():
+        if key in ("data", "val_data"):
+            value = dataset_path(recipe, value, out)
+        if isinstance(value, bool):
+            if value:
+                args.append("--" + key.replace("_", "-"))
+            continue
+        if isinstance(value, (list, tuple)):
+            value = ",".join(str(v) for v in value)
+        args += ["--" + key.replace("_", "-"), str(value)]
+    return args
+
+
+def stage_step(run_dir: Path) -> int:
+    """The step a stage's run folder has reached (0 when it has not started)."""
+    state = run_dir / "train_state.json"
+    return int(json.loads(state.read_text())["step"]) if state.is_file() else 0
+
+
+def stage_commands(stage: Stage, recipe: Recipe, out: Path, python: str = sys.executable) -> list[list[str]]:
+    """The ``vlocnetpp train`` commands still to run for ``stage`` (one per unfinished schedule entry)."""
+    run_dir = out / stage.name
+    done = stage_step(run_dir)
+    base = [python, "-m", "vlocnetpp_core.cli", "train", "--config", recipe.config, "--stage", stage.stage, "--out", str(run_dir),
+            "--no-progress", *_flag_args(stage.flags, recipe, out)]
+    for ref in stage.init:
+        base += ["--init", str(out / ref / "best.safetensors")]
+    commands = []
+    for steps, lr in stage.schedule:
+        if done >= steps:
+            continue
+        resume = ["--resume"] if done > 0 or commands else []
+        commands.append([*base, "--steps", str(steps), "--lr", f"{lr:g}", *resume])
+        done = steps
+    return commands
+
+
+def _run_group(group: list[Stage], recipe: Recipe, out: Path, log) -> None:
+    """Run the stages of ``group`` side by side (each its commands in order); raise when one fails."""
+    t0 = time.monotonic()
+    procs = []
+    for stage in group:
+        commands = stage_commands(stage, recipe, out)
+        if not commands:
+            continue
+        script = " && ".join(subprocess.list2cmdline(c) for c in commands)
+        logf = open(out / f"{stage.name}.log", "a")
+        log(f"stage {stage.name}: {stage.stage} to step {stage.steps} (log {out / f'{stage.name}.log'})")
+        procs.append((stage, subprocess.Popen(["bash", "-c", script], stdout=logf, stderr=subprocess.STDOUT), logf))
+    failed = []
+    for stage, proc, logf in procs:
+        if proc.wait() != 0:
+            failed.append(stage.name)
+        logf.close()
+    if failed:
+        raise UserError(f"stage {', '.join(failed)} failed; see {', '.join(str(out / f'{n}.log') for n in failed)} (run the recipe again to resume)")
+    if procs:
+        _record_time(out, "+".join(s.name for s, _, _ in procs), time.monotonic() - t0, log)
+
+
+def _record_time(out: Path, name: str, seconds: float, log) -> None:
+    path = out / "timings.json"
+    timings = json.loads(path.read_text()) if path.is_file() else {}
+    timings[name] = timings.get(name, 0.0) + seconds
+    tmp = path.with_name(".timings.json.tmp")
+    tmp.write_text(json.dumps(timings, indent=2) + "\n")
+    tmp.replace(path)
+    log(f"{name}: {seconds / 60:.1f} min (in total {timings[name] / 60:.1f} min)")
+
+
+def groups(stages: list[Stage]) -> list[list[Stage]]:
+    """Consecutive stages with the same ``parallel`` value form one group; the others run alone."""
+    out: list[list[Stage]] = []
+    for stage in stages:
+        if out and stage.parallel is not None and out[-1][-1].parallel == stage.parallel:
+            out[-1].append(stage)
+        else:
+            out.append([stage])
+    return out
+
+
+def run_recipe(path: str | Path, out: str | Path) -> int:
+    recipe = load_recipe(path)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+
+    def log(msg: str) -> None:
+        print(f"[recipe {time.strftime('%H:%M:%S')}] {msg}", flush=True)
+
+    prepare_datasets(recipe, out, log)
+    for group in groups(recipe.stages):
+        _run_group(group, recipe, out, log)
+    if recipe.export:
+        from vlocnetpp_core.recipe_export import export_weights
+
+        log(f"export: {export_weights(recipe, out)}")
+    return 0

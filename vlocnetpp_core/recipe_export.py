@@ -1,0 +1,62 @@
+"""The ``export`` step of a recipe: final weights in the shipped precision, calibration, retrieval reference."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import torch
+
+from vlocnetpp_core.errors import UserError
+
+DTYPES = {"float16": torch.float16, "float32": torch.float32}
+
+
+def export_weights(recipe, out: Path) -> Path:
+    """Write ``recipe.export`` (see :mod:`vlocnetpp_core.recipe`) and return the weights path.
+
+    The covariance calibration is the exported run's (from its validation); when that run did not
+    validate, the pose variances come from the ``calibration.pose`` stage and the odometry variances
+    from the ``calibration.odometry`` stage (their ``best`` sidecars).
+    """
+    from vlocnetpp_core.checkpoint import load_checkpoint, save_checkpoint
+    from vlocnetpp_core.recipe import dataset_path
+    from vlocnetpp_core.retrieval import open_reference, reference_of
+
+    spec = recipe.export
+    weights = spec.get("weights", "best")
+    run_dir = out / spec["stage"]
+    source = run_dir / weights if (run_dir / f"{weights}.safetensors").is_file() else run_dir / "last"
+    dtype = DTYPES.get(str(spec.get("dtype", "float16")))
+    if dtype is None:
+        raise UserError(f"{recipe.path}: export dtype must be one of {', '.join(DTYPES)}")
+    model, meta = load_checkpoint(source)
+    calibration = meta.get("calibration") or {}
+    if calibration.get("source", "default") == "default" and spec.get("calibration"):
+        calibration = _stage_calibration(out, spec["calibration"])
+    target = Path(spec["to"])
+    if not target.is_absolute():
+        target = Path.cwd() / target
+    path = save_checkpoint(target, model, {"training": meta["training"], "calibration": calibration, "intrinsics": meta["intrinsics"]},
+                           dtype=dtype)
+    if spec.get("reference"):
+        name = spec["reference"]
+        reference = open_reference(dataset_path(recipe, name, out))
+        reference.source = f"recipe {recipe.path.name}, dataset '{name}' ({recipe.datasets[name]}), train split"
+        reference.save(reference_of(path))
+    return path
+
+
+def _stage_calibration(out: Path, stages: dict) -> dict:
+    """Pose variances from ``stages['pose']``'s best sidecar, odometry variances from ``stages['odometry']``'s."""
+    parts = {}
+    for kind, stage in stages.items():
+        sidecar = out / stage / "best.json"
+        if not sidecar.is_file():
+            raise UserError(f"calibration: {sidecar} not found")
+        parts[kind] = json.loads(sidecar.read_text())["calibration"]
+    return {
+        "pose_variance": parts["pose"]["pose_variance"],
+        "odometry_variance": parts["odometry"]["odometry_variance"],
+        "source": "validation of the single-task stages: " + ", ".join(f"{k} from {v}" for k, v in stages.items()),
+    }
