@@ -38,17 +38,19 @@ from pathlib import Path
 
 from vlocnetpp_core.bag import messages
 from vlocnetpp_core.bag.bagfile import BagWriter, sigterm_as_interrupt
+from vlocnetpp_core.bag.topics import (
+    CAMERA_INFO_TOPIC,
+    COMPRESSED_TOPIC,
+    DEPTH_TOPIC,
+    GROUND_TRUTH_TOPIC,
+    IMAGE_TOPIC,
+    MAP_FRAME,
+    SEMANTIC_TOPIC,
+)
 from vlocnetpp_core.data.sample import DatasetIndex, Frame, sequence_stamps
 from vlocnetpp_core.errors import DataError, UserError
 
 CAMERA_FRAME = "camera"
-MAP_FRAME = "map"
-IMAGE_TOPIC = "/camera/image_raw"
-COMPRESSED_TOPIC = "/camera/image_raw/compressed"
-DEPTH_TOPIC = "/camera/depth/image_raw"
-CAMERA_INFO_TOPIC = "/camera/camera_info"
-SEMANTIC_TOPIC = "/camera/semantic"
-GROUND_TRUTH_TOPIC = "/ground_truth/pose"
 DEFAULT_RATE_HZ = {"deeploc": 20.0, "7scenes": 30.0}
 PREFETCH_FRAMES = 4
 DECODE_THREADS = 2

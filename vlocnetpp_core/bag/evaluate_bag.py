@@ -31,6 +31,15 @@ import numpy as np
 
 from vlocnetpp_core.bag import messages
 from vlocnetpp_core.bag.bagfile import BagReader
+from vlocnetpp_core.bag.topics import (
+    DEFAULT_MAX_GAP_S,
+    GROUND_TRUTH_TOPIC,
+    IMAGE_TOPICS,
+    ODOMETRY_TOPIC,
+    POSE_TOPIC,
+    SEGMENTATION_TOPIC,
+    SEMANTIC_TOPIC,
+)
 from vlocnetpp_core.classes import CLASS_NAMES
 from vlocnetpp_core.errors import DataError, UserError
 from vlocnetpp_core.metrics import SequenceResult, confusion_matrix, evaluate_sequences
@@ -45,13 +54,6 @@ from vlocnetpp_core.report import (
 )
 from vlocnetpp_core.trajectory import matrix_to_quat, pose_matrices
 
-GROUND_TRUTH_TOPIC = "/ground_truth/pose"
-SEMANTIC_TOPIC = "/camera/semantic"
-POSE_TOPIC = "/vlocnet/pose"
-ODOMETRY_TOPIC = "/vlocnet/odometry"
-SEGMENTATION_TOPIC = "/vlocnet/segmentation"
-IMAGE_TOPICS = ("/camera/image_raw", "/camera/image_raw/compressed")
-DEFAULT_MAX_GAP_S = 1.0  # the node's default max_gap_s: where it resets its temporal state
 _PENDING_LIMIT = 64  # label maps / masks waiting for their partner stamp (a partner never seen is dropped)
 
 

@@ -37,15 +37,22 @@ from typing import Any
 
 from vlocnetpp_core.bag import messages
 from vlocnetpp_core.bag.bagfile import BagReader, BagWriter, sigterm_as_interrupt
-from vlocnetpp_core.bag.convert import CAMERA_INFO_TOPIC, COMPRESSED_TOPIC, DEPTH_TOPIC, IMAGE_TOPIC, MAP_FRAME
+from vlocnetpp_core.bag.topics import (
+    CAMERA_INFO_TOPIC,
+    COMPRESSED_TOPIC,
+    DEFAULT_MAX_GAP_S,
+    DEPTH_TOPIC,
+    IMAGE_TOPIC,
+    MAP_FRAME,
+    ODOM_FRAME,
+    ODOMETRY_TOPIC,
+    POSE_TOPIC,
+    SEGMENTATION_TOPIC,
+    SEMANTIC_TOPIC,
+)
 from vlocnetpp_core.errors import DataError, UserError
 
-POSE_TOPIC = "/vlocnet/pose"
-ODOMETRY_TOPIC = "/vlocnet/odometry"
-SEGMENTATION_TOPIC = "/vlocnet/segmentation"
 OUTPUT_TOPICS = {POSE_TOPIC: messages.POSE_STAMPED, ODOMETRY_TOPIC: messages.ODOMETRY, SEGMENTATION_TOPIC: messages.IMAGE}
-ODOM_FRAME = "odom"
-DEFAULT_MAX_GAP_S = 1.0  # the Localizer's and the node's default
 
 
 @dataclass
@@ -81,7 +88,7 @@ def choose_image_topic(topics: dict[str, str], wanted: str | None, path: Path) -
     for t in (IMAGE_TOPIC, COMPRESSED_TOPIC):
         if t in topics:
             return t
-    candidates = [t for t in images if t not in (DEPTH_TOPIC, "/camera/semantic")]
+    candidates = [t for t in images if t not in (DEPTH_TOPIC, SEMANTIC_TOPIC)]
     if len(candidates) != 1:
         raise DataError(path, f"cannot tell the camera topic; pass --image-topic (image topics: {', '.join(images) or 'none'})")
     return candidates[0]

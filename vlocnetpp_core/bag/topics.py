@@ -1,0 +1,27 @@
+"""The topic names and frame conventions of this package's bags and node, in one place.
+
+Inputs (what ``convert`` writes and the node subscribes to by default), ground truth and labels
+(what ``convert`` writes and ``evaluate-bag`` scores against) and the localizer's outputs (what
+the node publishes and ``replay`` writes). ``DEFAULT_MAX_GAP_S`` is the stamp gap after which the
+localizer resets its temporal state, and after which ``evaluate-bag`` starts a new sequence.
+"""
+
+from __future__ import annotations
+
+IMAGE_TOPIC = "/camera/image_raw"
+COMPRESSED_TOPIC = IMAGE_TOPIC + "/compressed"  # image_transport's naming
+IMAGE_TOPICS = (IMAGE_TOPIC, COMPRESSED_TOPIC)
+DEPTH_TOPIC = "/camera/depth/image_raw"
+CAMERA_INFO_TOPIC = "/camera/camera_info"
+SEMANTIC_TOPIC = "/camera/semantic"
+GROUND_TRUTH_TOPIC = "/ground_truth/pose"
+
+POSE_TOPIC = "/vlocnet/pose"
+ODOMETRY_TOPIC = "/vlocnet/odometry"
+SEGMENTATION_TOPIC = "/vlocnet/segmentation"
+OUTPUT_TOPICS = (POSE_TOPIC, ODOMETRY_TOPIC, SEGMENTATION_TOPIC)
+DIAGNOSTICS_TOPIC = "/diagnostics"
+
+MAP_FRAME = "map"
+ODOM_FRAME = "odom"
+DEFAULT_MAX_GAP_S = 1.0
