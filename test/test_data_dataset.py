@@ -50,6 +50,16 @@ def test_clip_tensors(deeploc_index):
         np.testing.assert_allclose(s["t"][k].numpy(), r[k].t, atol=1e-6)
 
 
+def test_clips_without_depth_and_labels_skip_their_files(deeploc_index):
+    """What stl-loc and stl-vo load: the images and poses of every clip, no depth or label files decoded."""
+    full = ClipDataset(deeploc_index, 3, make_transform(False, (64, 48)))[4]
+    light = ClipDataset(deeploc_index, 3, make_transform(False, (64, 48)), depth=False, labels=False)[4]
+    for key in ("image", "t", "q", "rel_t", "rel_q", "K", "stamp", "index"):
+        assert torch.equal(full[key], light[key]), key
+    assert full["has_depth"].item() and not light["has_depth"].item() and light["depth"].abs().max() == 0
+    assert full["has_labels"].item() and not light["has_labels"].item() and (light["labels"] == 255).all()
+
+
 def test_absent_depth_and_labels_are_filled(tmp_path):
     write_sevenscenes(tmp_path, {1: 3}, train=[1], test=[1])
     (tmp_path / "seq-01/frame-000001.depth.png").unlink()

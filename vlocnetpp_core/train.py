@@ -134,8 +134,9 @@ def _sample_seed(*parts: int) -> int:
     return int.from_bytes(hashlib.blake2b(repr(parts).encode(), digest_size=8).digest(), "little") >> 2
 
 
-def training_clips(index, clip_len: int, transform, strides: tuple[int, ...] = (1,)) -> torch.utils.data.ConcatDataset:
-    """The ``ClipDataset`` of ``index`` at each frame stride, pooled (item ``i`` as in ``ClipDataset``).
+def training_clips(index, clip_len: int, transform, strides: tuple[int, ...] = (1,), stage: str = "mtl") -> torch.utils.data.ConcatDataset:
+    """The ``ClipDataset`` of ``index`` at each frame stride, pooled (item ``i`` as in ``ClipDataset``);
+    depth and labels are decoded only for the stages that train on them (those with ``seg``).
 
     Stride ``s`` shows the network every ``s``-th frame: ``s`` times the motion between the frames
     it fuses, as from a faster robot or a slower camera. Odometry trained at one stride learns the
@@ -143,7 +144,8 @@ def training_clips(index, clip_len: int, transform, strides: tuple[int, ...] = (
     """
     from vlocnetpp_core.data import ClipDataset
 
-    return torch.utils.data.ConcatDataset([ClipDataset(index, clip_len, transform, stride=s) for s in strides])
+    seg = "seg" in STAGE_TASKS[stage]
+    return torch.utils.data.ConcatDataset([ClipDataset(index, clip_len, transform, stride=s, depth=seg, labels=seg) for s in strides])
 
 
 class SeededClips(torch.utils.data.Dataset):
@@ -342,10 +344,11 @@ def run(args: argparse.Namespace) -> int:
         val_index = open_dataset(args.val_data, args.format, args.val_split, args.intrinsics)
     else:
         train_index, val_index = _split_validation(train_index)
-    train_clips = training_clips(train_index, args.clip_len, make_transform(True, size), args.frame_strides)
+    train_clips = training_clips(train_index, args.clip_len, make_transform(True, size), args.frame_strides, args.stage)
     if len(train_clips) == 0:
         raise UserError(f"{args.data}: no training clips of {args.clip_len} frames")
-    val_clips = ClipDataset(val_index, args.clip_len, make_transform(False, size)) if val_index is not None else None
+    seg = "seg" in STAGE_TASKS[args.stage]
+    val_clips = ClipDataset(val_index, args.clip_len, make_transform(False, size), depth=seg, labels=seg) if val_index is not None else None
 
     model = VLocNetPP(config)
     positions = np.array([r.t for r in train_index.records])

@@ -71,13 +71,15 @@ class ClipDataset(torch.utils.data.Dataset):
     ``rel_q (T, 4)`` (``T_{i-1}^{-1} T_i``, identity for frame 0), ``depth (T, 1, H, W)`` metres
     (zeros when absent), ``labels (T, H, W)`` int64 (255 when absent), ``K (T, 3, 3)``, ``stamp (T,)``
     float64, ``sequence ()``, ``has_depth ()`` / ``has_labels ()`` (every frame has them) and
-    ``index (T,)`` (record indices in the ``DatasetIndex``).
+    ``index (T,)`` (record indices in the ``DatasetIndex``). ``depth=False`` / ``labels=False`` skip
+    decoding those files (the clips then hold zeros / 255, as for a dataset without them).
     """
 
-    def __init__(self, index: DatasetIndex, clip_len: int = 1, transform=None, stride: int = 1):
+    def __init__(self, index: DatasetIndex, clip_len: int = 1, transform=None, stride: int = 1, depth: bool = True, labels: bool = True):
         if clip_len < 1 or stride < 1:
             raise ValueError(f"clip_len and stride must be >= 1, got {clip_len}, {stride}")
         self.index = index
+        self.load_depth, self.load_labels = depth, labels
         self.clip_len = clip_len
         self.stride = stride
         self.transform = transform
@@ -94,7 +96,7 @@ class ClipDataset(torch.utils.data.Dataset):
 
     def load_clip(self, i: int, rng: np.random.Generator | None = None) -> list[Frame]:
         """Decoded and transformed frames of clip ``i``."""
-        frames = [self.index.load(j) for j in self.clip_indices(i)]
+        frames = [self.index.load(j, self.load_depth, self.load_labels) for j in self.clip_indices(i)]
         if self.transform is not None:
             frames = self.transform(frames, rng if rng is not None else np.random.default_rng())
         return frames

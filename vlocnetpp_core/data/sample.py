@@ -88,22 +88,21 @@ class DatasetIndex:
     def has_labels(self) -> bool:
         return any(r.labels is not None for r in self.records)
 
-    def load(self, i: int) -> Frame:
-        """Decode record ``i``. Raises ``DataError`` naming the file on unreadable or inconsistent data."""
+    def load(self, i: int, depth: bool = True, labels: bool = True) -> Frame:
+        """Decode record ``i`` (its depth and labels only where asked: training stages that do not use
+        them skip their files). Raises ``DataError`` naming the file on unreadable or inconsistent data."""
         r = self.records[i]
         image = imageio.read_rgb(r.image)
         h, w = image.shape[:2]
         K = self.intrinsics
         if (K.width, K.height) != (w, h):
             K = K.resized(w, h)
-        depth = imageio.read_depth(r.depth, (h, w)) if r.depth is not None else None
-        labels = imageio.read_labels(r.labels, (h, w)) if r.labels is not None else None
         return Frame(
             image=image,
             t=np.array(r.t, dtype=np.float64),
             q=np.array(r.q, dtype=np.float64),
-            depth=depth,
-            labels=labels,
+            depth=imageio.read_depth(r.depth, (h, w)) if depth and r.depth is not None else None,
+            labels=imageio.read_labels(r.labels, (h, w)) if labels and r.labels is not None else None,
             intrinsics=K,
             stamp=r.stamp,
             sequence=r.sequence,
