@@ -27,6 +27,7 @@ def _recipe(tmp_path, **changes) -> dict:
             {"name": "seg", "stage": "stl-seg", "schedule": [{"steps": 2, "lr": 1e-3}], "parallel": "a", "threads": 1},
             {"name": "loc", "stage": "stl-loc", "init": ["vo"], "s_q_init": 0,
              "schedule": [{"steps": 2, "lr": 1e-3}, {"steps": 3, "lr": 1e-4}]},
+            {"name": "seg-more", "stage": "stl-seg", "continue": "seg", "schedule": [{"steps": 3, "lr": 1e-3}]},
         ],
         "export": {"stage": "loc", "to": str(tmp_path / "models" / "tiny"), "dtype": "float16", "reference": "campus"},
     }
@@ -42,7 +43,9 @@ def test_recipe_runs_every_stage_exports_and_resumes(tmp_path, capsys):
     printed = capsys.readouterr().out
     assert "vo+seg:" in printed and "loc:" in printed and "export:" in printed
     timings = json.loads((out / "timings.json").read_text())
-    assert set(timings) == {"vo+seg", "loc"} and all(v > 0 for v in timings.values())
+    assert set(timings) == {"vo+seg", "loc", "seg-more"} and all(v > 0 for v in timings.values())
+    more = [json.loads(line) for line in (out / "seg-more" / "log.jsonl").read_text().splitlines() if "validation" not in line]
+    assert [r["step"] for r in more] == [1, 2, 3]  # seg's two steps (its copied run), then one more, resumed
     log = [json.loads(line) for line in (out / "loc" / "log.jsonl").read_text().splitlines() if "validation" not in line]
     assert [(r["step"], r["lr"]) for r in log] == [(1, 1e-3), (2, 1e-3), (3, 1e-4)]  # the schedule, resumed at the step-down
     meta = read_checkpoint_meta(tmp_path / "models" / "tiny")
@@ -69,7 +72,7 @@ def test_recipe_resumes_an_unfinished_schedule(tmp_path):
 
 
 @pytest.mark.parametrize("change, message", [
-    ({"stages": [{"name": "loc", "stage": "stl-loc", "init": ["vo"], "schedule": [{"steps": 2, "lr": 1e-3}]}]}, "init 'vo' is not an earlier stage"),
+    ({"stages": [{"name": "loc", "stage": "stl-loc", "init": ["vo"], "schedule": [{"steps": 2, "lr": 1e-3}]}]}, "'vo' (init or continue) is not an earlier stage"),
     ({"stages": [{"name": "vo", "stage": "stl-vo", "schedule": [{"steps": 2}]}]}, "'schedule' must be a list"),
     ({"stages": [{"name": "vo", "stage": "stl-vo", "data": "nope", "schedule": [{"steps": 2, "lr": 1e-3}]}]}, "data 'nope' is not one of"),
     ({"export": {"stage": "mtl"}}, "export stage 'mtl'"),

@@ -24,7 +24,7 @@ from pathlib import Path
 
 from vlocnetpp_core.errors import UserError
 
-TRAINING_SEED = 0  # the visits the shipped model was trained on (scripts/train_shipped_model.sh)
+TRAINING_SEED = 0  # the visits the shipped model was trained on (config/recipes/shipped.yaml)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

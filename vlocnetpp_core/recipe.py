@@ -16,7 +16,9 @@ weights. Example (``config/recipes/shipped.yaml`` is the shipped model's)::
 
 Stage keys: ``name`` (run folder), ``stage``, ``schedule`` (list of ``{steps, lr}``: train to
 ``steps`` in total at ``lr``, resuming from the previous entry), ``init`` (stage names: their
-``best`` weights, in order), ``data`` / ``val_data`` (dataset names), ``parallel`` (stages with
+``best`` weights, in order), ``continue`` (a stage name: start as a copy of that stage's run
+folder and resume it, e.g. to use a stage's early weights as another's init and train it on),
+``data`` / ``val_data`` (dataset names), ``parallel`` (stages with
 the same value that follow each other run side by side, e.g. two single-thread stages on two
 cores), and any other ``vlocnetpp train`` flag (``threads``, ``frame_strides``, ``s_q_init``,
 ``val_split``, ...; lists become comma-separated). Every stage runs as its own process (its
@@ -44,7 +46,7 @@ import yaml
 
 from vlocnetpp_core.errors import UserError
 
-STAGE_KEYS = {"name", "stage", "schedule", "init", "data", "val_data", "parallel"}
+STAGE_KEYS = {"name", "stage", "schedule", "init", "data", "val_data", "parallel", "continue"}
 
 
 @dataclass
@@ -57,6 +59,7 @@ class Stage:
     init: list[str] = field(default_factory=list)
     flags: dict = field(default_factory=dict)
     parallel: str | None = None
+    continues: str | None = None
 
     @property
     def steps(self) -> int:
@@ -96,15 +99,16 @@ def load_recipe(path: str | Path) -> Recipe:
             raise UserError(f"{where}: 'schedule' must be a list of {{steps: N, lr: R}}") from None
         if not schedule or any(b[0] < a[0] for a, b in zip(schedule[:-1], schedule[1:], strict=True)):
             raise UserError(f"{where}: 'schedule' steps must be given in increasing order")
-        for ref in entry.get("init") or []:
+        for ref in [*(entry.get("init") or []), *([entry["continue"]] if "continue" in entry else [])]:
             if ref not in names:
-                raise UserError(f"{where}: init '{ref}' is not an earlier stage")
+                raise UserError(f"{where}: '{ref}' (init or continue) is not an earlier stage")
         for key in ("data", "val_data"):
             if key in entry and entry[key] not in datasets:
                 raise UserError(f"{where}: {key} '{entry[key]}' is not one of the recipe's datasets ({', '.join(datasets) or 'none'})")
         names.add(entry["name"])
         flags = {key: v for key, v in entry.items() if key not in STAGE_KEYS - {"data", "val_data"}}
-        stages.append(Stage(entry["name"], entry["stage"], schedule, list(entry.get("init") or []), flags, entry.get("parallel")))
+        stages.append(Stage(entry["name"], entry["stage"], schedule, list(entry.get("init") or []), flags, entry.get("parallel"),
+                            entry.get("continue")))
     export = raw.get("export")
     if export is not None and export.get("stage") not in names:
         raise UserError(f"{path}: export stage '{export.get('stage')}' is not one of the stages")
@@ -178,11 +182,23 @@ def stage_commands(stage: Stage, recipe: Recipe, out: Path, python: str = sys.ex
     return commands
 
 
+def continue_run(stage: Stage, out: Path) -> None:
+    """A stage that ``continue``s another starts as a copy of that stage's run folder (then resumes it)."""
+    import shutil
+
+    if stage.continues and not (out / stage.name).exists():
+        tmp = out / f".{stage.name}.copy"
+        shutil.rmtree(tmp, ignore_errors=True)
+        shutil.copytree(out / stage.continues, tmp)
+        tmp.rename(out / stage.name)
+
+
 def _run_group(group: list[Stage], recipe: Recipe, out: Path, log) -> None:
     """Run the stages of ``group`` side by side (each its commands in order); raise when one fails."""
     t0 = time.monotonic()
     procs = []
     for stage in group:
+        continue_run(stage, out)
         commands = stage_commands(stage, recipe, out)
         if not commands:
             continue
