@@ -163,8 +163,8 @@ def _reference(args: argparse.Namespace, format: str):
 def untrained_tasks(meta: dict) -> list[str] | None:
     """Tasks (``loc``, ``vo``, ``seg``) the checkpoint with sidecar ``meta`` was not trained for; None when its
     sidecar does not say how it was trained."""
+    from vlocnetpp_core.model.assembly import trained_tasks
     from vlocnetpp_core.model.stages import TASK_NAMES
-    from vlocnetpp_core.train import trained_tasks
 
     trained = trained_tasks(meta.get("training") or {})
     return None if trained is None else [t for t in TASK_NAMES if t not in trained]

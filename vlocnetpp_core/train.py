@@ -39,11 +39,11 @@ import torch.distributed as dist
 
 from vlocnetpp_core.errors import UserError
 from vlocnetpp_core.losses import S_Q_INIT, selection_score
+from vlocnetpp_core.model.assembly import builds_semantic_fusion
+from vlocnetpp_core.model.assembly import frozen_trunk as assembly_frozen_trunk
 from vlocnetpp_core.model.stages import STAGE_TASKS, STAGES
 
 DEFAULT_LR = {"stl-loc": 1e-3, "stl-vo": 1e-3, "stl-seg": 1e-3, "mtl": 1e-4}
-# Which stage a stream's weights are taken from when `mtl` is initialised from several checkpoints.
-STREAM_SOURCE = {"global": "stl-loc", "odometry": "stl-vo", "semantic": "stl-seg", "depth": "stl-seg"}
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -181,7 +181,7 @@ def _split_validation(index):
 def _load_inits(model, criterion, paths: list[str], stage: str, log) -> list[dict]:
     """Initialise from checkpoints. For ``mtl`` each stream is taken from the checkpoint of its stage."""
     from vlocnetpp_core.checkpoint import read_checkpoint_tensors
-    from vlocnetpp_core.model import stream_of
+    from vlocnetpp_core.model.assembly import init_rule, init_tensors
     from vlocnetpp_core.train_state import load_criterion_weights
 
     sources = []
@@ -191,14 +191,7 @@ def _load_inits(model, criterion, paths: list[str], stage: str, log) -> list[dic
         src_stage = meta.get("training", {}).get("stage")
         sources.append({"path": str(path), "stage": src_stage})
         own = model.state_dict()
-        if stage == "stl-loc" and src_stage == "stl-seg":
-            keep = semantic_encoder_as_global_stream(tensors, own)
-        elif stage == "stl-loc" and src_stage == "stl-vo":
-            keep = {k: v for k, v in tensors.items() if k.startswith("trunk.")}
-        elif stage == "mtl" and len(paths) > 1:
-            keep = {k: v for k, v in tensors.items() if k in own and STREAM_SOURCE.get(stream_of(k)) == src_stage}
-        else:
-            keep = {k: v for k, v in tensors.items() if k in own}
+        keep = init_tensors(init_rule(stage, src_stage, len(paths)), src_stage, tensors, own)
         bad = [k for k, v in keep.items() if v.shape != own[k].shape]
         if bad:
             raise UserError(f"{path}: {len(bad)} tensors do not match this model config (e.g. {bad[0]}); was it trained with another --config?")
@@ -214,43 +207,6 @@ def _load_inits(model, criterion, paths: list[str], stage: str, log) -> list[dic
         _identity_fusion_init(model)
         log("init: semantic fusion (Res4c) starts as an identity of the global stream's Res4c features")
     return sources
-
-
-def trained_tasks(training: dict) -> set[str] | None:
-    """The tasks (``loc``, ``vo``, ``seg``) whose streams a checkpoint's weights were trained for, from
-    its sidecar's ``training`` entry: its stage's, plus those of ``--init`` checkpoints that
-    :func:`_load_inits` loads whole (``stl-loc`` takes only the trunk of an ``stl-vo`` init and the
-    encoder of an ``stl-seg`` one, as its own global stream). One level deep: the sidecar records the
-    stages of its inits, not theirs. A run of 0 steps (``mtl --steps 0`` assembling the stages) trained
-    nothing itself. ``set()`` for a freshly initialised checkpoint, None when no stage is recorded."""
-    stage = training.get("stage")
-    if stage == "init":
-        return set()
-    if stage not in STAGE_TASKS:
-        return None
-    tasks = set(STAGE_TASKS[stage]) if training.get("step", 1) > 0 else set()
-    for source in training.get("init") or []:
-        if not (stage == "stl-loc" and source.get("stage") in ("stl-seg", "stl-vo")):
-            tasks |= set(STAGE_TASKS.get(source.get("stage"), ()))
-    return tasks
-
-
-def semantic_encoder_as_global_stream(tensors: dict[str, torch.Tensor], own: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-    """An stl-seg encoder as the pre-trained backbone of stl-loc (our stand-in for ImageNet weights).
-
-    ``semantic.{stem,res2,res3}.*`` -> ``trunk.*`` and ``semantic.{res4,res5}.*`` ->
-    ``global_stream.{res4,res5}.*`` wherever the name and shape match (the multiscale blocks of
-    the AdapNet encoder split their 3x3 convolutions, so those stay freshly initialised).
-    """
-    out = {}
-    for key, value in tensors.items():
-        if not key.startswith("semantic."):
-            continue
-        rest = key.removeprefix("semantic.")
-        target = ("global_stream." if rest.startswith(("res4.", "res5.")) else "trunk.") + rest
-        if target in own and own[target].shape == value.shape:
-            out[target] = value
-    return out
 
 
 @torch.no_grad()
@@ -331,10 +287,8 @@ def run(args: argparse.Namespace) -> int:
 
     torch.manual_seed(args.seed)
     config = load_model_config(args.config)
-    if config.semantic_fusion and (args.stage != "mtl" or args.steps == 0):
-        # Only mtl training learns the Res4c AWF: a stage that does not train it is built without it
-        # (mtl training starts it as an identity, _identity_fusion_init; a plain untrained AWF ends in
-        # a ReLU that clips the global stream's signed Res4c features).
+    if config.semantic_fusion and not builds_semantic_fusion(args.stage, args.steps):
+        # mtl training starts the Res4c AWF as an identity (_identity_fusion_init)
         config = dataclasses.replace(config, semantic_fusion=False)
         log(f"{args.stage}{' with no steps' if args.stage == 'mtl' else ''}: the network is built without the Res4c semantic fusion, which only mtl training learns")
     size = tuple(config.input_size)
@@ -361,8 +315,7 @@ def run(args: argparse.Namespace) -> int:
 
         log(f"init-backbone: {load_backbone_weights(model, args.init_backbone)}")
     params = list(trainable_parameters(model, args.stage))
-    frozen_trunk = (args.stage == "stl-vo" and bool(args.init)) or (
-        args.stage == "stl-loc" and any(src["stage"] == "stl-vo" for src in sources))
+    frozen_trunk = assembly_frozen_trunk(args.stage, [src["stage"] for src in sources])
     if frozen_trunk:
         # One pose stream on top of the other's trunk (stl-vo on stl-loc, or stl-loc on stl-vo):
         # keep the shared trunk as the first stage learned it (weights and BatchNorm statistics),

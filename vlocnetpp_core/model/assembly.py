@@ -1,0 +1,97 @@
+"""How a training stage is assembled from ``--init`` checkpoints: one table of rules that training
+(which tensors to load, what stays frozen, whether the Res4c fusion is built) and ``evaluate``
+(which tasks a checkpoint was trained for) both read.
+
+:data:`INIT_RULES` says what a checkpoint of stage ``source`` gives a run of stage ``run``:
+
+* ``"whole"`` (the default): every tensor whose name exists in the run's network;
+* ``"streams"`` (``mtl`` from several single-task checkpoints): each stream from the checkpoint of
+  the stage that trains it (:data:`STREAM_SOURCE`);
+* ``"trunk"`` (``stl-loc`` on ``stl-vo``): only the shared trunk, kept frozen (weights and
+  BatchNorm statistics) so ``mtl`` can combine the two pose streams;
+* ``"encoder"`` (``stl-loc`` on ``stl-seg``): the semantic encoder as the global stream's
+  backbone (our stand-in for ImageNet weights; :func:`semantic_encoder_as_global_stream`).
+
+Only ``"whole"`` and ``"streams"`` pass the source stage's tasks on to the run.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from vlocnetpp_core.model.stages import STAGE_TASKS, stream_of
+
+INIT_RULES: dict[tuple[str, str], str] = {
+    ("stl-loc", "stl-vo"): "trunk",
+    ("stl-loc", "stl-seg"): "encoder",
+}
+STREAM_SOURCE = {"global": "stl-loc", "odometry": "stl-vo", "semantic": "stl-seg", "depth": "stl-seg"}  # the fusion: none
+TASK_CARRYING_RULES = ("whole", "streams")
+
+
+def init_rule(run: str, source: str | None, n_inits: int) -> str:
+    """The :data:`INIT_RULES` entry for a checkpoint of stage ``source`` given to a run of stage ``run``."""
+    if run == "mtl" and n_inits > 1:
+        return "streams"
+    return INIT_RULES.get((run, source or ""), "whole")
+
+
+def init_tensors(rule: str, source: str | None, tensors: dict[str, torch.Tensor], own: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """The tensors of a checkpoint (of stage ``source``) that ``rule`` loads into a network whose state dict is ``own``."""
+    if rule == "encoder":
+        return semantic_encoder_as_global_stream(tensors, own)
+    if rule == "trunk":
+        return {k: v for k, v in tensors.items() if k.startswith("trunk.")}
+    if rule == "streams":
+        return {k: v for k, v in tensors.items() if k in own and STREAM_SOURCE.get(stream_of(k)) == source}
+    return {k: v for k, v in tensors.items() if k in own}
+
+
+def frozen_trunk(run: str, sources: list[str | None]) -> bool:
+    """Whether a run keeps the shared trunk frozen: one pose stream trained on top of the other's trunk
+    (``stl-vo`` initialised from anything, ``stl-loc`` on an ``stl-vo`` trunk)."""
+    if run == "stl-vo":
+        return bool(sources)
+    return any(init_rule(run, s, len(sources)) == "trunk" for s in sources)
+
+
+def builds_semantic_fusion(stage: str, steps: int | None) -> bool:
+    """Only ``mtl`` training learns the Res4c AWF: every other run (and ``mtl --steps 0``, which assembles
+    the stages) is built without it (a plain untrained AWF ends in a ReLU that clips the global stream)."""
+    return stage == "mtl" and steps != 0
+
+
+def trained_tasks(training: dict) -> set[str] | None:
+    """The tasks (``loc``, ``vo``, ``seg``) whose streams a checkpoint's weights were trained for, from its
+    sidecar's ``training`` entry: its stage's, plus those of ``--init`` checkpoints whose rule carries
+    them. One level deep: the sidecar records the stages of its inits, not theirs. A run of 0 steps
+    trained nothing itself. ``set()`` for a freshly initialised checkpoint, None when no stage is recorded."""
+    stage = training.get("stage")
+    if stage == "init":
+        return set()
+    if stage not in STAGE_TASKS:
+        return None
+    tasks = set(STAGE_TASKS[stage]) if training.get("step", 1) > 0 else set()
+    inits = training.get("init") or []
+    for source in inits:
+        if init_rule(stage, source.get("stage"), len(inits)) in TASK_CARRYING_RULES:
+            tasks |= set(STAGE_TASKS.get(source.get("stage"), ()))
+    return tasks
+
+
+def semantic_encoder_as_global_stream(tensors: dict[str, torch.Tensor], own: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """An stl-seg encoder as the pre-trained backbone of stl-loc (our stand-in for ImageNet weights).
+
+    ``semantic.{stem,res2,res3}.*`` -> ``trunk.*`` and ``semantic.{res4,res5}.*`` ->
+    ``global_stream.{res4,res5}.*`` wherever the name and shape match (the multiscale blocks of
+    the AdapNet encoder split their 3x3 convolutions, so those stay freshly initialised).
+    """
+    out = {}
+    for key, value in tensors.items():
+        if not key.startswith("semantic."):
+            continue
+        rest = key.removeprefix("semantic.")
+        target = ("global_stream." if rest.startswith(("res4.", "res5.")) else "trunk.") + rest
+        if target in own and own[target].shape == value.shape:
+            out[target] = value
+    return out
