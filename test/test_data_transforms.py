@@ -93,6 +93,19 @@ def test_clip_frames_share_the_random_draw():
     assert len(Ks) > 1  # the draw does change between clips
 
 
+def test_training_without_geometric_augmentation_sees_the_test_geometry():
+    """``scale=(1, 1)`` (the pose stages' default): the whole image at the input size, as at test time; only photometric jitter."""
+    train, test = make_transform(True, (96, 64), scale=(1.0, 1.0)), make_transform(False, (96, 64))
+    reference = test([_marker_frame()], np.random.default_rng(0))[0]
+    images = []
+    for seed in range(4):
+        f = train([_marker_frame()], np.random.default_rng(seed))[0]
+        assert f.intrinsics == reference.intrinsics
+        np.testing.assert_array_equal(f.depth, reference.depth)
+        images.append(f.image)
+    assert any(not np.array_equal(im, reference.image) for im in images)  # the jitter still changes the colours
+
+
 def test_depth_and_labels_resize_never_blend():
     rng = np.random.default_rng(0)
     depth = rng.choice(np.array([0.0, 5.0, 7.0], np.float32), size=(150, 200))

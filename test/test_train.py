@@ -69,6 +69,12 @@ def test_training_clips_pool_frame_strides(tiny):
         cli(["train", "--config", "lite", "--data", str(tiny[0]), "--stage", "stl-vo", "--out", "x", "--frame-strides", "0,1"])
 
 
+def test_crop_scale_below_one_is_refused(tiny, tmp_path, capsys):
+    out = tmp_path / "run"
+    assert cli(["train", "--config", "lite", "--data", str(tiny[0]), "--stage", "stl-loc", "--out", str(out), "--crop-scale", "0.5"]) == 2
+    assert "--crop-scale must be >= 1, got 0.5" in capsys.readouterr().err
+
+
 def test_zero_epochs_is_refused_not_thirty(tiny, tmp_path, capsys):
     out = tmp_path / "run"
     assert cli(["train", "--config", "lite", "--data", str(tiny[0]), "--stage", "mtl", "--out", str(out), "--epochs", "0"]) != 0

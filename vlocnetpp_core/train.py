@@ -44,6 +44,7 @@ from vlocnetpp_core.model.assembly import frozen_trunk as assembly_frozen_trunk
 from vlocnetpp_core.model.stages import STAGE_TASKS, STAGES
 
 DEFAULT_LR = {"stl-loc": 1e-3, "stl-vo": 1e-3, "stl-seg": 1e-3, "mtl": 1e-4}
+DEFAULT_CROP_SCALE = {"stl-seg": 1.15}  # the pose stages: 1 (no geometric augmentation)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -70,6 +71,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--lr", type=float,
                    help="learning rate (default: 1e-3 single-task, 1e-4 mtl, as in the paper; with --resume: the run's, "
                         "or this one from the resumed step on)")
+    p.add_argument("--crop-scale", type=float, default=None, metavar="S",
+                   help="geometric augmentation: zoom by a random factor in [1, S], then crop the input size at a random place "
+                        "(default: 1.15 for stl-seg; 1, none, for the stages with pose losses, whose targets a crop would falsify: "
+                        "a crop shifted by d pixels shows the view of a camera turned by about d/f radians)")
     p.add_argument("--s-q-init", type=float, default=S_Q_INIT,
                    help="initial rotation loss weight s_q (paper: -3, i.e. rotation weighted e^3 = 20x at the start); "
                         "0 lets a global stream trained from scratch leave the predict-the-mean plateau (docs/training.md)")
@@ -298,7 +303,10 @@ def run(args: argparse.Namespace) -> int:
         val_index = open_dataset(args.val_data, args.format, args.val_split, args.intrinsics)
     else:
         train_index, val_index = _split_validation(train_index)
-    train_clips = training_clips(train_index, args.clip_len, make_transform(True, size), args.frame_strides, args.stage)
+    crop_scale = args.crop_scale if args.crop_scale is not None else DEFAULT_CROP_SCALE.get(args.stage, 1.0)
+    if not (math.isfinite(crop_scale) and crop_scale >= 1.0):
+        raise UserError(f"--crop-scale must be >= 1, got {crop_scale}")
+    train_clips = training_clips(train_index, args.clip_len, make_transform(True, size, scale=(1.0, crop_scale)), args.frame_strides, args.stage)
     if len(train_clips) == 0:
         raise UserError(f"{args.data}: no training clips of {args.clip_len} frames")
     seg = "seg" in STAGE_TASKS[args.stage]
@@ -365,7 +373,7 @@ def run(args: argparse.Namespace) -> int:
     summary = {
         "stage": args.stage, "data": str(args.data), "train_frames": len(train_index), "train_sequences": len(train_index.sequences),
         "train_clips": len(train_clips), "frame_strides": list(args.frame_strides), "val_frames": len(val_index) if val_index is not None else 0, "clip_len": args.clip_len,
-        "batch_size": args.batch_size, "lr": lr, "s_q_init": args.s_q_init, "world_size": world, "init": sources, "seed": args.seed,
+        "batch_size": args.batch_size, "lr": lr, "s_q_init": args.s_q_init, "crop_scale": crop_scale, "world_size": world, "init": sources, "seed": args.seed,
     }
 
     def checkpoint_meta(step_now: int, calibration: dict | None) -> dict:

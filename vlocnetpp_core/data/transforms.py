@@ -208,15 +208,17 @@ def make_transform(
     evaluation, bag replay and the node see the same pixels; the aspect follows ``size``, which
     for 16:9 cameras and the 16:9-ish input sizes of the configs is a distortion of a few percent
     that the intrinsics absorb). Train: resize to ``size`` times a random factor in ``scale``,
-    random crop (the paper's random-crop training), photometric jitter, and a horizontal flip
-    when ``flip`` (segmentation-only training: it breaks global poses).
+    random crop (the paper's random-crop training; ``scale=(1, 1)``: none, the whole image as at
+    test time), photometric jitter, and a horizontal flip when ``flip`` (segmentation-only
+    training: it breaks global poses).
     """
     size = (int(size[0]), int(size[1]))
     if not train:
         return Compose([Resize(size)])
     if not (1.0 <= scale[0] <= scale[1]) or not math.isfinite(scale[1]):
         raise ValueError(f"scale must be a range (lo, hi) with 1 <= lo <= hi, got {scale}")
-    ts = [Resize(size, scale), RandomCrop(size), ColorJitter(brightness, contrast, saturation)]
+    geometric = [Resize(size, scale), RandomCrop(size)] if scale[1] > 1.0 else [Resize(size)]
+    ts = [*geometric, ColorJitter(brightness, contrast, saturation)]
     if flip:
         ts.append(HorizontalFlip(0.5))
     return Compose(ts)
