@@ -57,7 +57,7 @@ def early_late(log: list[dict], key: str, n: int = 15) -> tuple[float, float]:
 
 def test_training_clips_pool_frame_strides(tiny):
     from vlocnetpp_core.data import open_dataset
-    from vlocnetpp_core.train import training_clips
+    from vlocnetpp_core.train_data import training_clips
 
     index = open_dataset(tiny[0], None, "train")  # 3 loops of 10 frames
     single, pooled = training_clips(index, 2, None), training_clips(index, 2, None, (1, 2))
@@ -176,14 +176,14 @@ def test_mtl_semantic_fusion_starts_as_an_identity(tiny, stage_runs):
     from vlocnetpp_core.data import ClipDataset, make_transform, open_dataset
     from vlocnetpp_core.losses import VLocNetLoss
     from vlocnetpp_core.model import VLocNetPP
-    from vlocnetpp_core.train import _load_inits
+    from vlocnetpp_core.trainer import load_inits
 
     data, config = tiny
     model = VLocNetPP(load_model_config(config))
     assert model.semantic_fusion is not None
     paths = [stage_runs[stage] / "last.safetensors" for stage in ("stl-loc", "stl-vo", "stl-seg")]
     messages: list[str] = []
-    _load_inits(model, VLocNetLoss("mtl"), paths, "mtl", messages.append)
+    load_inits(model, VLocNetLoss("mtl"), paths, "mtl", messages.append)
     assert any("identity" in m for m in messages)
     stl_loc = load_checkpoint(stage_runs["stl-loc"] / "last")[0]
     model.eval()

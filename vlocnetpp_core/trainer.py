@@ -1,0 +1,395 @@
+"""The :class:`Trainer` of ``vlocnetpp train``: set-up, resume, optimiser steps, validation and saving.
+
+One run trains one stage (``stl-loc``, ``stl-vo``, ``stl-seg``, ``mtl``; see ``train.py`` for the
+flags and the run folder). Every step unrolls clips through ``model.forward_clip``, so the
+previous-frame features the network fuses come from its own previous step. Distributed runs
+(``torchrun``) give each rank a disjoint share of every batch; rank 0 alone validates and writes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.distributed as dist
+
+from vlocnetpp_core.errors import UserError
+from vlocnetpp_core.losses import selection_score
+from vlocnetpp_core.model.assembly import builds_semantic_fusion, frozen_trunk, init_rule, init_tensors
+from vlocnetpp_core.model.stages import STAGE_TASKS
+from vlocnetpp_core.train_data import EpochSampler, SeededClips, split_validation, training_clips
+
+DEFAULT_LR = {"stl-loc": 1e-3, "stl-vo": 1e-3, "stl-seg": 1e-3, "mtl": 1e-4}
+DEFAULT_CROP_SCALE = {"stl-seg": 1.15}  # the pose stages: 1 (no geometric augmentation)
+
+
+class Trainer:
+    """One training run from the parsed ``vlocnetpp train`` arguments: ``Trainer(args).run()``."""
+
+    def __init__(self, args: argparse.Namespace):
+        self.args = args
+        self._setup_process()
+        self._setup_data()
+        self._setup_model()
+        self.step, self.best, self.reference, self.calibration = 0, math.inf, None, None
+        if args.resume:
+            self._resume()
+        self.net = torch.nn.parallel.DistributedDataParallel(self.model, find_unused_parameters=True) if self.distributed else self.model
+
+    def log(self, msg: str) -> None:
+        if self.is_main:
+            print(f"[train] {msg}", file=sys.stderr, flush=True)
+
+    # ------------------------------------------------------------------ set-up
+
+    def _setup_process(self) -> None:
+        """Ranks, device, threads and the run folder."""
+        args = self.args
+        self.world = int(os.environ.get("WORLD_SIZE", "1"))
+        self.rank = int(os.environ.get("RANK", "0"))
+        self.distributed = self.world > 1
+        self.device = torch.device(args.device)
+        if self.distributed:
+            if self.device.type == "cuda":
+                self.device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
+                torch.cuda.set_device(self.device)
+            dist.init_process_group("nccl" if self.device.type == "cuda" else "gloo")
+        if args.threads:
+            torch.set_num_threads(args.threads)
+        if args.batch_size % self.world:
+            raise UserError(f"--batch-size {args.batch_size} must be divisible by the number of processes ({self.world})")
+        self.is_main = self.rank == 0
+        self.out = Path(args.out)
+        if self.is_main:
+            self.out.mkdir(parents=True, exist_ok=True)
+        torch.manual_seed(args.seed)
+
+    def _setup_data(self) -> None:
+        """The model config (its input size), training and validation clips, the sampler and the step count."""
+        from vlocnetpp_core.data import ClipDataset, make_transform, open_dataset
+        from vlocnetpp_core.model import load_model_config
+
+        args = self.args
+        config = load_model_config(args.config)
+        if config.semantic_fusion and not builds_semantic_fusion(args.stage, args.steps):
+            config = dataclasses.replace(config, semantic_fusion=False)  # mtl training starts it as an identity
+            self.log(f"{args.stage}{' with no steps' if args.stage == 'mtl' else ''}: the network is built without the Res4c "
+                     "semantic fusion, which only mtl training learns")
+        self.config, self.size = config, tuple(config.input_size)
+        self.train_index = open_dataset(args.data, args.format, "train", args.intrinsics)
+        if args.val_data:
+            self.val_index = open_dataset(args.val_data, args.format, args.val_split, args.intrinsics)
+        else:
+            self.train_index, self.val_index = split_validation(self.train_index)
+        self.crop_scale = args.crop_scale if args.crop_scale is not None else DEFAULT_CROP_SCALE.get(args.stage, 1.0)
+        if not (math.isfinite(self.crop_scale) and self.crop_scale >= 1.0):
+            raise UserError(f"--crop-scale must be >= 1, got {self.crop_scale}")
+        transform = make_transform(True, self.size, scale=(1.0, self.crop_scale))
+        self.train_clips = training_clips(self.train_index, args.clip_len, transform, args.frame_strides, args.stage)
+        if len(self.train_clips) == 0:
+            raise UserError(f"{args.data}: no training clips of {args.clip_len} frames")
+        seg = "seg" in STAGE_TASKS[args.stage]
+        self.val_clips = None
+        if self.val_index is not None:
+            self.val_clips = ClipDataset(self.val_index, args.clip_len, make_transform(False, self.size), depth=seg, labels=seg)
+        self.sampler = EpochSampler(len(self.train_clips), args.batch_size, args.seed, self.rank, self.world)
+        epochs = 30.0 if args.epochs is None else args.epochs
+        self.total = args.steps if args.steps is not None else int(math.ceil(epochs * self.sampler.batches_per_epoch))
+
+    def _setup_model(self) -> None:
+        """The network (position prior, inits, backbone), the loss with its learned weights, the optimiser."""
+        from vlocnetpp_core.losses import VLocNetLoss
+        from vlocnetpp_core.model import VLocNetPP, trainable_parameters
+
+        args = self.args
+        self.model = model = VLocNetPP(self.config)
+        positions = np.array([r.t for r in self.train_index.records])
+        model.set_position_prior(positions.mean(axis=0), np.maximum(positions.std(axis=0), 1.0))
+        model.to(self.device)
+        self.criterion = VLocNetLoss(args.stage, depth=self.config.warping, s_q_init=args.s_q_init).to(self.device)
+        self.sources = load_inits(model, self.criterion, args.init, args.stage, self.log) if args.init else []
+        if args.init_backbone:
+            from vlocnetpp_core.model import load_backbone_weights
+
+            self.log(f"init-backbone: {load_backbone_weights(model, args.init_backbone)}")
+        params = list(trainable_parameters(model, args.stage))
+        self.frozen_trunk = frozen_trunk(args.stage, [src["stage"] for src in self.sources])
+        if self.frozen_trunk:
+            # One pose stream on top of the other's trunk: keep the shared trunk as the first stage learned it
+            # (weights and BatchNorm statistics), so that mtl can combine the two streams consistently.
+            trunk = {id(p) for n, p in model.named_parameters() if n.startswith("trunk.")}
+            params = [p for p in params if id(p) not in trunk]
+        params += list(self.criterion.parameters())
+        for p in model.parameters():
+            p.requires_grad_(False)
+        for p in params:
+            p.requires_grad_(True)
+        self.lr = args.lr if args.lr is not None else DEFAULT_LR[args.stage]
+        self.optimizer = torch.optim.Adam(params, lr=self.lr, betas=(0.9, 0.999), eps=1e-10)
+
+    def _resume(self) -> None:
+        """Weights, optimiser, loss weights, RNG, step and best score of the run in ``--out``; ``--lr`` steps the rate."""
+        from vlocnetpp_core.checkpoint import read_checkpoint_tensors
+        from vlocnetpp_core.train_state import load_train_state
+
+        args, out = self.args, self.out
+        meta = load_train_state(out, optimizer=self.optimizer, criterion=self.criterion)
+        saved_strides = tuple(meta.get("args", {}).get("frame_strides") or args.frame_strides)
+        if saved_strides != args.frame_strides:  # the saved (epoch, offset) indexes that clip list
+            raise UserError(f"{out}: the run trained with --frame-strides {','.join(map(str, saved_strides))}; "
+                            f"resume it with the same (got {','.join(map(str, args.frame_strides))})")
+        tensors, _ = read_checkpoint_tensors(out / "last.safetensors")
+        self.model.load_state_dict({k: v.to(self.device) for k, v in tensors.items()})
+        self.step, self.reference = int(meta["step"]), meta.get("best_reference")
+        saved_lr = self.optimizer.param_groups[0]["lr"]
+        if args.lr is None:
+            self.lr = saved_lr
+        elif args.lr != saved_lr:  # a step-down for the last part of a run: --resume --lr 1e-4
+            for group in self.optimizer.param_groups:
+                group["lr"] = args.lr
+            self.log(f"learning rate {saved_lr:g} -> {args.lr:g} from step {self.step}")
+        self.best = float(meta.get("best", math.inf))
+        self.log(f"resumed at step {self.step}")
+
+    # ------------------------------------------------------------------ the loop
+
+    def run(self) -> None:
+        """Train to ``total`` steps, validating and saving every ``--val-every`` steps (and at least every ``--save-every-s``)."""
+        args = self.args
+        progress = None
+        if self.is_main and not args.no_progress:
+            from tqdm import tqdm
+
+            progress = tqdm(total=self.total, initial=self.step, desc=f"train {args.stage}", unit="step", dynamic_ncols=True)
+        self.log(f"{args.stage}: {len(self.train_clips)} clips (frame strides {','.join(map(str, args.frame_strides))}), "
+                 f"{self.sampler.batches_per_epoch} steps/epoch, {self.total} steps, lr {self.lr:g}, batch {args.batch_size}, device {self.device}")
+        self.last_save = time.monotonic()
+        with open(self.out / "log.jsonl", "a") if self.is_main else open(os.devnull, "w") as logf:
+            while self.step < self.total:
+                epoch, offset = divmod(self.step, self.sampler.batches_per_epoch)
+                self.sampler.set_position(epoch, offset)
+                loader = torch.utils.data.DataLoader(SeededClips(self.train_clips), batch_size=self.sampler.per_rank, sampler=self.sampler,
+                                                     num_workers=args.workers, persistent_workers=False, drop_last=True)
+                for batch in loader:
+                    rec = self.train_step(batch, epoch)
+                    logf.write(json.dumps(rec) + "\n")
+                    if progress is not None:
+                        progress.update(1)
+                        shown = {k: f"{v:.3g}" for k, v in rec.items() if k not in ("step", "epoch", "lr", "clips_per_s")}
+                        progress.set_postfix(shown | {"clips/s": f"{rec['clips_per_s']:.1f}"})
+                    self._validate_or_save(rec["loss"], logf)
+                    logf.flush()
+                    if self.step >= self.total:
+                        break
+        if self.is_main and self.total == 0:  # nothing to train: write the initialised network (e.g. mtl assembled from its stages)
+            self.save(True)
+        if progress is not None:
+            progress.close()
+        if self.distributed:
+            dist.barrier()
+            dist.destroy_process_group()
+        self.log(f"done: {self.out / 'last.safetensors'} (best: {self.out / 'best.safetensors'})")
+
+    def train_step(self, batch: dict[str, torch.Tensor], epoch: int) -> dict:
+        """One optimiser step on a batch of clips; returns the log record (every loss term, the rate, clips/s)."""
+        t0 = time.perf_counter()
+        self.net.train()
+        if self.frozen_trunk:
+            self.model.trunk.eval()
+        batch = {k: v.to(self.device, non_blocking=True) for k, v in batch.items()}
+        loss, parts = self.criterion(forward_stage(self.net, batch, self.args.stage), batch)
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        self.optimizer.step()
+        self.step += 1
+        return {"step": self.step, "epoch": epoch, "lr": self.optimizer.param_groups[0]["lr"], "loss": float(loss.detach()),
+                **{k: float(v) for k, v in parts.items()}, "clips_per_s": self.args.batch_size / (time.perf_counter() - t0)}
+
+    def _validate_or_save(self, loss: float, logf) -> None:
+        """At a validation step: validate (rank 0), rank by :func:`selection_score` and save; else save when due."""
+        if self.step % self.args.val_every == 0 or self.step == self.total:
+            metrics = None
+            if self.is_main and self.val_clips is not None:
+                metrics, self.calibration = validate(self.model, self.criterion, self.val_clips, self.args.stage, self.device)
+                logf.write(json.dumps({"step": self.step, "validation": metrics}) + "\n")
+                self.log(f"step {self.step}: validation {json.dumps(metrics)}")
+            if metrics:
+                self.reference = self.reference or metrics
+                score = selection_score(metrics, self.reference)
+            else:
+                score = loss
+            is_best = score < self.best
+            self.best = min(self.best, score)
+            if self.is_main:
+                self.save(is_best)
+            self.last_save = time.monotonic()
+        elif self.is_main and time.monotonic() - self.last_save > self.args.save_every_s:
+            self.save(False)
+            self.last_save = time.monotonic()
+
+    def save(self, is_best: bool) -> None:
+        """``last`` (and ``best``) checkpoints with their sidecar, and the resumable state, atomically."""
+        from vlocnetpp_core.checkpoint import save_checkpoint
+        from vlocnetpp_core.train_state import save_train_state
+
+        meta = {"training": {**self.summary(), "step": self.step}, "intrinsics": self.train_index.intrinsics.resized(*self.size).to_dict()}
+        if self.calibration:
+            meta["calibration"] = self.calibration
+        save_checkpoint(self.out / "last", self.model, meta)
+        if is_best:
+            save_checkpoint(self.out / "best", self.model, meta)
+        save_train_state(self.out, step=self.step, optimizer=self.optimizer, criterion=self.criterion,
+                         extra={"best": self.best, "best_reference": self.reference, "args": _jsonable_args(self.args)})
+
+    def summary(self) -> dict:
+        """The ``training`` entry of the checkpoint sidecars."""
+        args = self.args
+        return {
+            "stage": args.stage, "data": str(args.data), "train_frames": len(self.train_index), "train_sequences": len(self.train_index.sequences),
+            "train_clips": len(self.train_clips), "frame_strides": list(args.frame_strides),
+            "val_frames": len(self.val_index) if self.val_index is not None else 0, "clip_len": args.clip_len,
+            "batch_size": args.batch_size, "lr": self.lr, "s_q_init": args.s_q_init, "crop_scale": self.crop_scale, "world_size": self.world,
+            "init": self.sources, "seed": args.seed,
+        }
+
+
+# --------------------------------------------------------------------------- model set-up
+
+
+def load_inits(model, criterion, paths: list[str], stage: str, log) -> list[dict]:
+    """Initialise from checkpoints. For ``mtl`` each stream is taken from the checkpoint of its stage."""
+    from vlocnetpp_core.checkpoint import read_checkpoint_tensors
+    from vlocnetpp_core.train_state import load_criterion_weights
+
+    sources = []
+    loaded: dict[str, torch.Tensor] = {}
+    for path in paths:
+        tensors, meta = read_checkpoint_tensors(path)
+        src_stage = meta.get("training", {}).get("stage")
+        sources.append({"path": str(path), "stage": src_stage})
+        own = model.state_dict()
+        keep = init_tensors(init_rule(stage, src_stage, len(paths)), src_stage, tensors, own)
+        bad = [k for k, v in keep.items() if v.shape != own[k].shape]
+        if bad:
+            raise UserError(f"{path}: {len(bad)} tensors do not match this model config (e.g. {bad[0]}); was it trained with another --config?")
+        model.load_state_dict({k: v.to(own[k].dtype) for k, v in keep.items()}, strict=False)
+        loaded.update(keep)
+        crit = load_criterion_weights(Path(path).parent)
+        if crit:
+            own_c = criterion.state_dict()
+            criterion.load_state_dict({**own_c, **{k: v for k, v in crit.items() if k in own_c}})
+        log(f"init: {len(keep)} tensors from {path} (stage {src_stage})")
+    fusion = getattr(model, "semantic_fusion", None)
+    if fusion is not None and not any(k.startswith("semantic_fusion.") for k in loaded):
+        identity_fusion_init(model)
+        log("init: semantic fusion (Res4c) starts as an identity of the global stream's Res4c features")
+    return sources
+
+
+@torch.no_grad()
+def identity_fusion_init(model, margin: float = 8.0) -> None:
+    """Start the Res4c semantic fusion added to trained streams as an identity of the global stream.
+
+    The AWF is ``ReLU(pool(...) + b)`` and the global stream's Res4c features are signed, so the
+    pooling passes them through shifted by a per-channel ``c >= 0`` that lifts ``margin`` standard
+    deviations below their mean to zero (the statistics of the next block's BatchNorm, which reads
+    them), and every BatchNorm that reads the shifted features takes ``c`` off again: their
+    running means move by ``c`` (in training their batch means do). The shift rides the residual
+    path up to the first block with a projection shortcut (Res5a), whose BatchNorm removes it. So
+    the assembled network's outputs are unchanged wherever the features stay within ``margin``
+    standard deviations. The semantic half of the pooling starts at zero: it still receives
+    gradients (through the non-zero semantic features), and the per-channel semantic weights do
+    from the second step on.
+    """
+    fusion, g, k = model.semantic_fusion, model.global_stream, model.config.res4_fusion_block
+    readers = []
+    for block in [*g.res4[k:], *g.res5]:
+        readers.append(block.bn1)
+        if block.shortcut is not None:
+            break
+    else:
+        raise RuntimeError("no block with a projection shortcut after the Res4c fusion")
+    bn = readers[0]
+    c = torch.clamp(margin * torch.sqrt(bn.running_var + bn.eps) - bn.running_mean, min=0.0)
+    w = fusion.pool.weight  # (C_a, C_a + C_b, 1, 1)
+    ca = fusion.weight_a.numel()
+    w.zero_()
+    w[:, :ca, 0, 0] = torch.eye(ca, dtype=w.dtype)
+    fusion.pool.bias.copy_(c)
+    for reader in readers:
+        reader.running_mean += c
+
+
+# --------------------------------------------------------------------------- forward and validation
+
+
+def forward_stage(net, batch: dict, stage: str):
+    """Unroll the clip. ``stl-seg`` warps with the ground-truth relative pose (its odometry stream is untrained)."""
+    from vlocnetpp_core import geometry
+
+    warp = None
+    if stage == "stl-seg":
+        warp = geometry.pose_to_matrix(batch["rel_t"], batch["rel_q"])
+    return net(batch["image"], batch["K"], warp_rel_pose=warp, tasks=STAGE_TASKS[stage])  # forward = forward_clip
+
+
+@torch.no_grad()
+def validate(model, criterion, clips, stage: str, device) -> tuple[dict, dict]:
+    """Mean validation losses (eval mode) and the covariance calibration of pose and odometry errors."""
+    from vlocnetpp_core import geometry
+
+    model.eval()
+    loader = torch.utils.data.DataLoader(clips, batch_size=8, shuffle=False, num_workers=0)
+    sums: dict[str, float] = {}
+    n = 0
+    pose_err, odo_err = [], []
+    for batch in loader:
+        batch = {k: v.to(device) for k, v in batch.items()}
+        outputs = forward_stage(model, batch, stage)
+        loss, parts = criterion(outputs, batch)
+        for k, v in {"loss": loss, **parts}.items():
+            sums[k] = sums.get(k, 0.0) + float(v)
+        n += 1
+        for i, o in enumerate(outputs):
+            if o.xyz is not None:
+                pose_err.append(_pose_residual(o.xyz, o.quat, batch["t"][:, i], batch["q"][:, i], geometry))
+            if i > 0 and o.rel_xyz is not None:
+                odo_err.append(_pose_residual(o.rel_xyz, o.rel_quat, batch["rel_t"][:, i], batch["rel_q"][:, i], geometry))
+    model.train()
+    metrics = {k: v / max(n, 1) for k, v in sums.items()}
+    calib = {
+        "pose_variance": _variance(pose_err),
+        "odometry_variance": _variance(odo_err),
+        "frames": int(sum(len(e) for e in pose_err)),
+        "source": f"validation ({stage}, {len(clips)} clips)",
+        "note": "per-axis variance of validation errors: x, y, z (m^2), rotation about x, y, z (rad^2); odometry per frame",
+    }
+    return metrics, calib
+
+
+def _pose_residual(xyz, quat, t, q, geometry) -> np.ndarray:
+    """``(B, 6)`` residual: translation error (m) and rotation-vector error (rad) of prediction vs truth."""
+    dq = geometry.quat_normalize(geometry.quat_mul(geometry.quat_inverse(q.double()), quat.double()))
+    angle = 2 * torch.atan2(dq[:, 1:].norm(dim=1), dq[:, 0].clamp_min(0))
+    axis = dq[:, 1:] / dq[:, 1:].norm(dim=1, keepdim=True).clamp_min(1e-12)
+    return torch.cat((xyz.double() - t.double(), axis * angle[:, None]), 1).cpu().numpy()
+
+
+def _variance(chunks: list[np.ndarray]) -> list[float] | None:
+    if not chunks:
+        return None
+    e = np.concatenate(chunks)
+    return [float(v) for v in np.mean(e**2, axis=0)]
+
+
+def _jsonable_args(args: argparse.Namespace) -> dict:
+    return {k: list(v) if isinstance(v, tuple) else v for k, v in vars(args).items()
+            if not k.startswith("_") and isinstance(v, (str, int, float, bool, list, tuple, type(None)))}
