@@ -16,6 +16,7 @@ import numpy as np
 from rosbags.typesys import Stores, get_typestore
 
 from vlocnetpp_core import preprocess
+from vlocnetpp_core.geometry import quat_from_ros, quat_to_ros
 from vlocnetpp_core.intrinsics import Intrinsics
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
@@ -139,10 +140,10 @@ def intrinsics_from_camera_info(msg: Any) -> Intrinsics:
 
 def _pose(t: np.ndarray, q_wxyz: np.ndarray) -> Any:
     t = np.asarray(t, dtype=np.float64)
-    q = np.asarray(q_wxyz, dtype=np.float64)
+    x, y, z, w = (float(v) for v in quat_to_ros(np.asarray(q_wxyz, dtype=np.float64)))
     return _T["geometry_msgs/msg/Pose"](
         position=_T["geometry_msgs/msg/Point"](x=float(t[0]), y=float(t[1]), z=float(t[2])),
-        orientation=_T["geometry_msgs/msg/Quaternion"](x=float(q[1]), y=float(q[2]), z=float(q[3]), w=float(q[0])),
+        orientation=_T["geometry_msgs/msg/Quaternion"](x=x, y=y, z=z, w=w),
     )
 
 
@@ -154,7 +155,7 @@ def pose_stamped(ns: int, frame_id: str, t: np.ndarray, q_wxyz: np.ndarray) -> A
 def pose_from_msg(pose: Any) -> tuple[np.ndarray, np.ndarray]:
     """``(t (3,), q (4,) (w, x, y, z), w >= 0)`` of a ``geometry_msgs/Pose``."""
     p, o = pose.position, pose.orientation
-    q = np.array([o.w, o.x, o.y, o.z], dtype=np.float64)
+    q = quat_from_ros(np.array([o.x, o.y, o.z, o.w], dtype=np.float64))
     q /= np.linalg.norm(q)
     return np.array([p.x, p.y, p.z], dtype=np.float64), (-q if q[0] < 0 else q)
 
