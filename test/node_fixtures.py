@@ -1,15 +1,21 @@
-"""Helpers for the node tests: camera frames as messages, and a tester node that collects the node's outputs."""
+"""Helpers for the node tests: camera frames as messages, a tester node that collects the node's outputs,
+and the node started from a colcon install tree as a process of its own."""
 
 from __future__ import annotations
 
 import os
+import signal
+import subprocess
 import threading
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 import cv2
 import numpy as np
 import rclpy
+import yaml
+from conftest import install_env
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Odometry
@@ -104,3 +110,51 @@ def wait_until(condition: Callable[[], bool], timeout: float = 20.0, what: str =
 
 def diagnostic_values(msg: DiagnosticArray) -> dict[str, str]:
     return {kv.key: kv.value for kv in msg.status[0].values}
+
+
+def params_file(install: Path, folder: Path, **overrides) -> Path:
+    """The installed config/localizer.yaml with some values replaced, written into ``folder``."""
+    shipped = install / "vlocnetpp_ros" / "share" / "vlocnetpp_ros" / "config" / "localizer.yaml"
+    data = yaml.safe_load(shipped.read_text())
+    data["/**"]["ros__parameters"].update(overrides)
+    path = folder / f"params_{len(list(folder.glob('params_*')))}.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+class InstalledNode:
+    """``lib/vlocnetpp_ros/localizer --ros-args --params-file FILE [ARGS]`` from the install tree, on ROS domain ``domain``."""
+
+    def __init__(self, install: Path, params: Path, log: Path, domain: int, env: dict[str, str] | None = None, args: tuple[str, ...] = ()):
+        self.env = env = {**install_env(install), **(env or {})}
+        env.update(ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
+        exe = install / "vlocnetpp_ros" / "lib" / "vlocnetpp_ros" / "localizer"
+        self.log = log
+        self._out = open(log, "w")
+        self.proc = subprocess.Popen([str(exe), "--ros-args", "--params-file", str(params), *args], env=env, cwd="/",
+                                     stdout=self._out, stderr=subprocess.STDOUT)
+
+    def output(self) -> str:
+        if not self._out.closed:
+            self._out.flush()
+        return self.log.read_text()
+
+    def rss_mb(self) -> float:
+        """Resident memory (``VmRSS``) in MiB."""
+        for line in Path(f"/proc/{self.proc.pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+        raise AssertionError("no VmRSS")
+
+    def stop(self, sig: int = signal.SIGTERM, timeout: float = 10.0) -> tuple[int, float]:
+        """Send ``sig``; ``(exit code, seconds until exit)``."""
+        start = time.monotonic()
+        if self.proc.poll() is None:
+            self.proc.send_signal(sig)
+        try:
+            code = self.proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            code = self.proc.wait()
+        self._out.close()
+        return code, time.monotonic() - start

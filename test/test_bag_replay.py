@@ -4,18 +4,21 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import os
 import subprocess
 import sys
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
-from bag_report_compare import assert_same_metrics
+from bag_report_compare import assert_same_metrics, pose_tolerances
 from data_fixtures import trajectory, write_deeploc_split
 
 from vlocnetpp_core.bag import messages
 from vlocnetpp_core.bag.bagfile import BagReader
+from vlocnetpp_core.bag.evaluate_bag import read_matched_frames
 from vlocnetpp_core.bag.replay import ODOMETRY_TOPIC, POSE_TOPIC, SEGMENTATION_TOPIC
 from vlocnetpp_core.checkpoint import init_checkpoint
 from vlocnetpp_core.cli import main
@@ -24,6 +27,11 @@ from vlocnetpp_core.model import load_model_config
 REPO = Path(__file__).resolve().parents[1]
 OUTPUTS = (POSE_TOPIC, ODOMETRY_TOPIC, SEGMENTATION_TOPIC)
 LOOP_A, LOOP_B = list(range(1, 8)), list(range(51, 57))  # two loops -> two sequences, 10 s apart in the bag
+# Node over DDS vs in-process replay: the same float32 network run with other thread counts (another
+# summation order). Its outputs (poses in metres, unit quaternions: values of order 1) then differ by a
+# few float32 roundings of the accumulated sums, ~1e-7 (issue 22: medians 2.3e-7 m apart on another
+# machine); the bound is 1e-5, the agreement docs/node.md states even between the torch and onnx backends.
+POSE_ATOL = 1e-5
 
 
 @pytest.fixture(scope="module")
@@ -95,8 +103,43 @@ def test_compressed_png_bag_gives_the_same_outputs(setup, tmp_path):
     assert all(np.array_equal(got[k], ref[k]) for k in ref)
 
 
+def _segmentation_margins(setup: Path, tmp_path: Path) -> dict[int, np.ndarray]:
+    """stamp (ns) -> per mask pixel, the gap between the two largest segmentation logits of the network pixel
+    the mask takes its class from (nearest neighbour, as the localizer brings the mask back), relative to
+    the frame's largest logit magnitude (at least 1); from the model run over the bag in this process."""
+    from vlocnetpp_core.bag.replay import replay
+    from vlocnetpp_core.localizer import Localizer
+
+    localizer = Localizer.from_checkpoint(setup / "model")
+    stamps, gaps = [], []
+    real_step, real_net = localizer.step, localizer._step_fn
+
+    def step(image, encoding, stamp, **kwargs):
+        stamps.append(round(stamp * 1e9))
+        result = real_step(image, encoding, stamp, **kwargs)
+        gaps[-1] = cv2.resize(gaps[-1], (result.mask.shape[1], result.mask.shape[0]), interpolation=cv2.INTER_NEAREST_EXACT)
+        return result
+
+    def net(*args):
+        out, state = real_net(*args)
+        logits = out.seg_logits[0].float()
+        top = logits.topk(2, dim=0).values
+        gaps.append(((top[0] - top[1]) / max(1.0, float(logits.abs().max()))).cpu().numpy())
+        return out, state
+
+    localizer.step, localizer._step_fn = step, net
+    replay(setup / "in.mcap", tmp_path / "margins.mcap", localizer, progress=False)
+    return dict(zip(stamps, gaps, strict=True))
+
+
 def test_replay_through_the_node_gives_the_same_poses(setup, tmp_path):
-    """The real node (console script `localizer`) as a subprocess, fed over DDS in lockstep (--rate max)."""
+    """The real node (console script `localizer`) as a subprocess, fed over DDS in lockstep (--rate max).
+
+    The node runs in its own process with its own thread count (``num_threads`` 0: all cores but one),
+    the in-process replay with torch's default: the same float32 network summed in another order.
+    Poses agree to POSE_ATOL; a mask pixel may take another class only where its two largest logits
+    are closer than two such differences; the metrics follow (``bag_report_compare.pose_tolerances``).
+    """
     out = tmp_path / "node.mcap"
     env = dict(os.environ, ROS_DOMAIN_ID=str(100 + os.getpid() % 100), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     proc = subprocess.run([sys.executable, "-m", "vlocnetpp_core.cli", "replay", str(setup / "in.mcap"), "--checkpoint", str(setup / "model"),
@@ -106,12 +149,28 @@ def test_replay_through_the_node_gives_the_same_poses(setup, tmp_path):
     assert f"{len(LOOP_A + LOOP_B)} frames localized" in proc.stdout
     ref, got = _outputs(setup / "out.mcap"), _outputs(out)
     assert got.keys() == ref.keys()
+    margins = _segmentation_margins(setup, tmp_path)
+    differing = 0
     for key in ref:
-        tol = 0 if key[0] == SEGMENTATION_TOPIC else 1e-5
-        np.testing.assert_allclose(got[key], ref[key], atol=tol, rtol=0, err_msg=str(key))
+        if key[0] == SEGMENTATION_TOPIC:
+            changed = got[key] != ref[key]
+            assert np.all(margins[key[1]].ravel()[changed] <= 2 * POSE_ATOL), (key, int(changed.sum()))
+            differing += int(changed.sum())
+        else:
+            np.testing.assert_allclose(got[key], ref[key], atol=POSE_ATOL, rtol=0, err_msg=str(key))
     assert main(["evaluate-bag", str(out), "--json", str(tmp_path / "node.json")]) == 0
     assert main(["evaluate-bag", str(setup / "out.mcap"), "--json", str(tmp_path / "ref.json")]) == 0
-    assert_same_metrics(json.loads((tmp_path / "ref.json").read_text()), json.loads((tmp_path / "node.json").read_text()))
+    want = json.loads((tmp_path / "ref.json").read_text())
+    with BagReader(setup / "out.mcap") as reader:
+        frames = read_matched_frames(reader)
+    pose_tolerance = pose_tolerances(frames, want["overall"]["odometry"]["lengths_m"], POSE_ATOL)
+
+    def tolerance(scope: str, part: str, key: str) -> float:
+        if part == "segmentation":  # equal masks give equal scores; near-tie pixels that differ were checked above
+            return 0.0 if differing == 0 else math.inf
+        return pose_tolerance(scope, part, key)
+
+    assert_same_metrics(want, json.loads((tmp_path / "node.json").read_text()), tolerance=tolerance)
 
 
 def test_replay_errors_are_one_line(setup, tmp_path, capsys):

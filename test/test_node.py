@@ -26,8 +26,9 @@ from vlocnetpp_core.checkpoint import init_checkpoint
 from vlocnetpp_core.errors import UserError
 from vlocnetpp_core.intrinsics import Intrinsics
 from vlocnetpp_core.localizer import Localizer
-from vlocnetpp_ros import conversions
-from vlocnetpp_ros.diagnostics import ThrottledLog
+from vlocnetpp_core.preprocess import FrameError
+from vlocnetpp_ros import conversions, storm
+from vlocnetpp_ros.diagnostics import MAX_EVENTS, MAX_KEYS, MAX_LINE, NodeStats, ThrottledLog
 from vlocnetpp_ros.node import PARAMETERS, LocalizerNode, default_checkpoint
 
 DOMAIN = domain_id(20)
@@ -200,6 +201,7 @@ def test_depth_images_are_matched_by_stamp_and_bad_ones_are_ignored(make_node, c
         o = got.pose.pose.position
         np.testing.assert_allclose([o.x, o.y, o.z], expected.odom_t, atol=1e-6)
     assert sum(node.stats.rejected.values()) == 0 and node.stats.processed == 5
+    assert node.stats.ignored["depth_missing"] == 1  # frame 4 only: the refused depth of frame 3 is not counted twice
 
 
 def test_compressed_images_and_camera_info(make_node, checkpoint: Path):
@@ -310,3 +312,42 @@ def test_throttled_log_says_how_many_lines_it_held_back():
     assert log("b", "other reason", now=2.0)  # throttled per key
     assert log("a", "later", now=5.1)
     assert lines == ["first", "other reason", "later (2 more like this in the last 5 s)"]
+
+
+def test_counters_log_keys_and_windows_stay_bounded_whatever_the_reasons():
+    lines: list[str] = []
+    log = ThrottledLog(lines.append)
+    for k in range(3 * MAX_KEYS):
+        log(f"reason{k}", "x" * (10 * MAX_LINE), now=0.0)
+    assert len(log._last) == MAX_KEYS + 1  # the rest share "other"
+    assert len(lines) == MAX_KEYS + 1 and all(len(line) < MAX_LINE + 40 for line in lines)
+    stats = NodeStats()
+    for k in range(3 * MAX_KEYS):
+        stats.reject(f"reason{k}")
+        stats.ignore(f"reason{k}")
+    assert len(stats.rejected) == len(stats.ignored) == MAX_KEYS + 1
+    assert sum(stats.rejected.values()) == 3 * MAX_KEYS  # nothing lost, only pooled
+    n = 3 * MAX_EVENTS  # 10 kHz for 3 s: more arrivals than the window keeps
+    for k in range(n):
+        stats.arrived(100.0 + k * 1e-4, False)
+    assert len(stats._arrivals) == MAX_EVENTS
+    # the kept arrivals cover the last second at 10 kHz and the rate is measured over them: N arrivals
+    # span N - 1 intervals, so count / span overestimates by a factor N / (N - 1)
+    rate = stats.snapshot(now=100.0 + (n - 1) * 1e-4)["input_rate_hz"]
+    assert abs(rate - 1e4) <= 1e4 / (MAX_EVENTS - 1) * (1 + 1e-9)
+
+
+def test_compressed_images_are_refused_from_their_header():
+    rgb = camera_frames(1, seed=12)[0]
+    header = Header(stamp=conversions.seconds_to_stamp(1.0))
+    for ext, params in ((".png", []), (".jpg", []), (".jpg", [cv2.IMWRITE_JPEG_PROGRESSIVE, 1])):
+        ok, data = cv2.imencode(ext, rgb, params)
+        conversions.check_image(CompressedImage(header=header, format=ext, data=data.tobytes()))  # accepted
+        h, w = rgb.shape[:2]
+        assert conversions.compressed_to_rgb(CompressedImage(header=header, format=ext, data=data.tobytes())).shape == (h, w, 3)
+    cases = [(b"", "decode_failed"), (b"GIF89a" + bytes(100), "decode_failed"), (b"\xff\xd8\xff\xdb" + bytes(50), "decode_failed"),
+             (storm._BOMB, "image_too_large")]
+    for data, reason in cases:
+        with pytest.raises(FrameError) as err:
+            conversions.check_image(CompressedImage(header=header, format="png", data=data))
+        assert err.value.reason == reason, data[:10]

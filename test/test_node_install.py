@@ -10,15 +10,12 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 import rclpy
-import yaml
-from conftest import install_env
-from node_fixtures import Harness, camera_frames, diagnostic_values, domain_id, image_msg, wait_until
+from node_fixtures import Harness, InstalledNode, camera_frames, diagnostic_values, domain_id, image_msg, params_file, wait_until
 from sensor_msgs.msg import Image
 
 from vlocnetpp_core.checkpoint import init_checkpoint
@@ -34,53 +31,6 @@ def checkpoint(tmp_path_factory) -> Path:
     return init_checkpoint("lite", tmp_path_factory.mktemp("install_node") / "lite", seed=4)
 
 
-def _params_file(install: Path, folder: Path, **overrides) -> Path:
-    """The installed config/localizer.yaml with some values replaced."""
-    shipped = install / "vlocnetpp_ros" / "share" / "vlocnetpp_ros" / "config" / "localizer.yaml"
-    data = yaml.safe_load(shipped.read_text())
-    data["/**"]["ros__parameters"].update(overrides)
-    path = folder / f"params_{len(list(folder.glob('params_*')))}.yaml"
-    path.write_text(yaml.safe_dump(data))
-    return path
-
-
-class NodeProcess:
-    """``lib/vlocnetpp_ros/localizer --ros-args --params-file FILE`` from the install tree."""
-
-    def __init__(self, install: Path, params: Path, log: Path, env: dict[str, str] | None = None):
-        self.env = env = {**install_env(install), **(env or {})}
-        env.update(ROS_DOMAIN_ID=str(DOMAIN), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
-        exe = install / "vlocnetpp_ros" / "lib" / "vlocnetpp_ros" / "localizer"
-        self.log = log
-        self._out = open(log, "w")
-        self.proc = subprocess.Popen([str(exe), "--ros-args", "--params-file", str(params)], env=env, cwd="/",
-                                     stdout=self._out, stderr=subprocess.STDOUT)
-
-    def output(self) -> str:
-        if not self._out.closed:
-            self._out.flush()
-        return self.log.read_text()
-
-    def rss_mb(self) -> float:
-        for line in Path(f"/proc/{self.proc.pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024
-        raise AssertionError("no VmRSS")
-
-    def stop(self, sig: int = signal.SIGTERM, timeout: float = 10.0) -> tuple[int, float]:
-        """Send ``sig``; ``(exit code, seconds until exit)``."""
-        start = time.monotonic()
-        if self.proc.poll() is None:
-            self.proc.send_signal(sig)
-        try:
-            code = self.proc.wait(timeout)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            code = self.proc.wait()
-        self._out.close()
-        return code, time.monotonic() - start
-
-
 @pytest.fixture(scope="module")
 def rclpy_context():
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
@@ -94,7 +44,7 @@ def rclpy_context():
 def running(colcon_install: Path, checkpoint: Path, tmp_path_factory, rclpy_context):
     """One node process (shared by the tests that only send frames) and the harness talking to it."""
     folder = tmp_path_factory.mktemp("running")
-    node = NodeProcess(colcon_install, _params_file(colcon_install, folder, checkpoint=str(checkpoint), num_threads=1), folder / "node.log")
+    node = InstalledNode(colcon_install, params_file(colcon_install, folder, checkpoint=str(checkpoint), num_threads=1), folder / "node.log", DOMAIN)
     harness = Harness(rclpy_context)
     try:
         harness.wait_for_subscriber(CAMERA, Image, timeout=60.0)
@@ -217,8 +167,8 @@ def test_best_effort_full_size_camera_with_the_shipped_profile_then_sigint(colco
     profile = colcon_install / "vlocnetpp_ros" / "share" / "vlocnetpp_ros" / "config" / "fastdds_large_data.xml"
     assert profile.is_file()
     env = {"FASTRTPS_DEFAULT_PROFILES_FILE": str(profile)}
-    params = _params_file(colcon_install, tmp_path, checkpoint=str(checkpoint), num_threads=1, image_topic="/best_effort_camera/image_raw")
-    node = NodeProcess(colcon_install, params, tmp_path / "node.log", env=env)
+    params = params_file(colcon_install, tmp_path, checkpoint=str(checkpoint), num_threads=1, image_topic="/best_effort_camera/image_raw")
+    node = InstalledNode(colcon_install, params, tmp_path / "node.log", DOMAIN, env=env)
     harness = Harness(rclpy_context)
     try:
         wait_until(lambda: harness.node.count_publishers("/vlocnet/pose") > 0, 60.0, "the node's pose publisher")
@@ -238,7 +188,7 @@ def test_best_effort_full_size_camera_with_the_shipped_profile_then_sigint(colco
 
 def test_a_missing_checkpoint_fails_with_one_clear_line(colcon_install: Path, tmp_path: Path):
     missing = tmp_path / "nowhere" / "model.safetensors"
-    node = NodeProcess(colcon_install, _params_file(colcon_install, tmp_path, checkpoint=str(missing)), tmp_path / "node.log")
+    node = InstalledNode(colcon_install, params_file(colcon_install, tmp_path, checkpoint=str(missing)), tmp_path / "node.log", DOMAIN)
     code = node.proc.wait(60)
     out = node.output()
     assert code == 1, out

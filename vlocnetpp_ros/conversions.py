@@ -18,7 +18,16 @@ from std_msgs.msg import Header
 
 from vlocnetpp_core.intrinsics import Intrinsics
 from vlocnetpp_core.localizer import LocalizerResult
-from vlocnetpp_core.preprocess import DEPTH_ENCODINGS, IMAGE_ENCODINGS, FrameError, decode_compressed, decode_raw, depth_to_metres
+from vlocnetpp_core.preprocess import (
+    DEPTH_ENCODINGS,
+    IMAGE_ENCODINGS,
+    FrameError,
+    check_compressed,
+    check_raw,
+    decode_compressed,
+    decode_raw,
+    depth_to_metres,
+)
 
 _CHANNELS = {"rgb8": 3, "bgr8": 3, "rgba8": 4, "bgra8": 4, "mono8": 1, "32FC1": 1, "16UC1": 1}
 
@@ -35,6 +44,23 @@ def seconds_to_stamp(seconds: float) -> Time:
 
 
 # --------------------------------------------------------------------------- images in
+
+
+def check_image(msg: Image | CompressedImage) -> None:
+    """Refuse a camera message from its header and data length alone (no pixel is read; O(1) for ``Image``,
+    a few bytes per JPEG segment for ``CompressedImage``): the :class:`FrameError` decoding would raise."""
+    if isinstance(msg, CompressedImage):
+        check_compressed(msg.data)
+    else:
+        check_raw(len(msg.data), msg.width, msg.height, msg.step, msg.encoding, allowed=IMAGE_ENCODINGS)
+
+
+def check_depth(msg: Image) -> None:
+    """:func:`check_image` for a depth image (reasons prefixed ``depth_``)."""
+    try:
+        check_raw(len(msg.data), msg.width, msg.height, msg.step, msg.encoding, allowed=DEPTH_ENCODINGS)
+    except FrameError as err:
+        raise FrameError(f"depth_{err.reason}", f"depth: {err}") from None
 
 
 def image_to_array(msg: Image) -> np.ndarray:

@@ -8,6 +8,11 @@ start. Key names (``DiagnosticStatus.values``): ``input_rate_hz``, ``processing_
 (frames skipped, total) and ``rejected.<reason>``, ``ignored.<reason>`` (depth or camera
 info not used, the frame still processed), ``resets`` (total) and ``reset.<reason>``, plus static
 ``info`` entries (checkpoint, device, input size).
+
+Memory is bounded whatever arrives: the rate and latency windows keep at most ``MAX_EVENTS``
+entries (beyond that the rate is measured over the span they cover), and a counter or the
+throttled log holds at most ``MAX_KEYS`` distinct keys (further ones are counted as ``other``);
+log lines are cut at ``MAX_LINE`` characters.
 """
 
 from __future__ import annotations
@@ -18,6 +23,15 @@ from collections import Counter, deque
 
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 
+MAX_EVENTS = 10_000  # arrivals / finished frames kept for the rate and latency windows
+MAX_KEYS = 64  # distinct reasons per counter (and keys of a ThrottledLog); the rest are "other"
+MAX_LINE = 500  # characters of one log line
+
+
+def _bounded_key(keys, key: str) -> str:
+    """``key``, or ``"other"`` once ``keys`` (a dict) already holds ``MAX_KEYS`` others."""
+    return key if key in keys or len(keys) < MAX_KEYS else "other"
+
 
 class NodeStats:
     """What the node did, for ``/diagnostics``."""
@@ -26,8 +40,8 @@ class NodeStats:
         self.window_s = window_s
         self.info = dict(info or {})
         self._lock = threading.Lock()
-        self._arrivals: deque[float] = deque()
-        self._done: deque[tuple[float, float]] = deque()  # (finish time, latency s)
+        self._arrivals: deque[float] = deque(maxlen=MAX_EVENTS)
+        self._done: deque[tuple[float, float]] = deque(maxlen=MAX_EVENTS)  # (finish time, latency s)
         self.received = 0
         self.processed = 0
         self.dropped = 0
@@ -47,24 +61,30 @@ class NodeStats:
             self.processed += 1
             self._done.append((now, latency_s))
             if reset_reason is not None and reset_reason != "start":
-                self.resets[reset_reason] += 1
+                self.resets[_bounded_key(self.resets, reset_reason)] += 1
             self._trim(now)
 
     def reject(self, reason: str) -> None:
         """A camera frame skipped for ``reason``."""
         with self._lock:
-            self.rejected[reason] += 1
+            self.rejected[_bounded_key(self.rejected, reason)] += 1
 
     def ignore(self, reason: str) -> None:
         """A side input (depth, camera info) not used for ``reason``; frames still processed."""
         with self._lock:
-            self.ignored[reason] += 1
+            self.ignored[_bounded_key(self.ignored, reason)] += 1
 
     def _trim(self, now: float) -> None:
         while self._arrivals and self._arrivals[0] < now - self.window_s:
             self._arrivals.popleft()
         while self._done and self._done[0][0] < now - self.window_s:
             self._done.popleft()
+
+    def _rate(self, count: int, oldest: float, now: float) -> float:
+        """Events per second in the window; over the span the kept events cover once ``MAX_EVENTS`` are kept."""
+        if count < MAX_EVENTS:
+            return count / self.window_s
+        return count / max(now - oldest, 1e-9)
 
     def snapshot(self, now: float | None = None) -> dict[str, float | int | str]:
         """Every reported value by key (numbers stay numbers here)."""
@@ -73,8 +93,8 @@ class NodeStats:
             self._trim(now)
             lat = sorted(d[1] for d in self._done)
             out: dict[str, float | int | str] = {
-                "input_rate_hz": len(self._arrivals) / self.window_s,
-                "processing_rate_hz": len(self._done) / self.window_s,
+                "input_rate_hz": self._rate(len(self._arrivals), self._arrivals[0] if self._arrivals else now, now),
+                "processing_rate_hz": self._rate(len(self._done), self._done[0][0] if self._done else now, now),
                 "latency_ms_median": 1000.0 * lat[len(lat) // 2] if lat else 0.0,
                 "latency_ms_max": 1000.0 * lat[-1] if lat else 0.0,
                 "received": self.received,
@@ -117,9 +137,13 @@ class ThrottledLog:
         self._lock = threading.Lock()
 
     def __call__(self, key: str, message: str, now: float | None = None) -> bool:
-        """Log ``message`` unless ``key`` was logged less than ``period_s`` ago; True when logged."""
+        """Log ``message`` (cut at ``MAX_LINE`` characters) unless ``key`` was logged less than ``period_s``
+        ago; True when logged. Keys beyond ``MAX_KEYS`` share the key ``other``."""
         now = time.monotonic() if now is None else now
+        if len(message) > MAX_LINE:
+            message = message[:MAX_LINE] + f"... ({len(message) - MAX_LINE} more characters)"
         with self._lock:
+            key = _bounded_key(self._last, key)
             if key in self._last and now - self._last[key] < self.period_s:
                 self._suppressed[key] += 1
                 return False

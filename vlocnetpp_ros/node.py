@@ -19,10 +19,20 @@ older frames dropped and counted. Camera topics use reliability ``BEST_AVAILABLE
 delivery from a reliable camera, and a best-effort camera still connects (see docs/node.md
 for the transport settings large best-effort streams need). A bad frame (encoding, size,
 truncated data, NaN output, ...) is logged (throttled), counted and skipped; the node keeps going.
+
+Memory does not grow with bad input: a camera or depth message that its header and data length
+already show to be unusable is refused in the subscription callback (it never takes the mailbox
+slot of a good frame, nor a place among the depth images kept for matching), and nothing keeps
+a reference to a refused message, its buffer or its exception once the callback or the frame
+is done; counters and throttled log keys are bounded (see :mod:`vlocnetpp_ros.diagnostics`).
+Once a second, after the diagnostics, the heap pages freed since are handed back to the system
+(glibc ``malloc_trim``), so the resident memory follows the memory in use after bursts of large
+messages instead of staying at their high-water mark.
 """
 
 from __future__ import annotations
 
+import ctypes
 import gc
 import sys
 import threading
@@ -52,8 +62,13 @@ from vlocnetpp_ros.diagnostics import NodeStats, ThrottledLog
 from vlocnetpp_ros.mailbox import LatestMailbox
 
 PACKAGE = "vlocnetpp_ros"
-CAMERA_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5, reliability=ReliabilityPolicy.BEST_AVAILABLE)
-DEPTH_MATCH_FRAMES = 8  # depth images kept for matching colour stamps
+# Keep-last 10, the depth of ROS's default (reliable) publisher profile. A reliable subscription whose
+# history is shallower than the publisher's window leaks in Fast DDS 2.14 when large (fragmented)
+# messages of varying sizes overflow it: measured ~20 MB per 3,000 malformed 640x480 messages with
+# depth 5, flat with 10 (docs/node.md, "Memory under bad input"). Bounded: at most 10 messages wait
+# in DDS, the callback moves them to the one-slot mailbox at once.
+CAMERA_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.BEST_AVAILABLE)
+DEPTH_MATCH_FRAMES = 8  # depth images (or stamps of refused ones) kept for matching colour stamps
 DEPTH_WAIT_S = 0.05  # how long a colour frame waits for its depth image (in the worker)
 
 # name -> (default, description); every one is in config/localizer.yaml.
@@ -112,9 +127,12 @@ class LocalizerNode(Node):
         w, h = self.localizer.input_size
         self.stats = NodeStats(info={"checkpoint": str(checkpoint), "device": str(p["device"]), "backend": p["backend"], "input_size": f"{w}x{h}"})
         self.warn = ThrottledLog(self.get_logger().warning)
+        # a call site of its own: rclpy refuses two severities logged from one line (ThrottledLog's)
+        self.note = ThrottledLog(lambda line: self.get_logger().info(line))
         self._mailbox = LatestMailbox()
         self._intrinsics = None
-        self._depths: deque[Image] = deque(maxlen=DEPTH_MATCH_FRAMES)
+        # (stamp, depth Image or None when it was refused on arrival), newest last
+        self._depths: deque[tuple[tuple[int, int], Image | None]] = deque(maxlen=DEPTH_MATCH_FRAMES)
         self._depth_arrived = threading.Condition()
 
         self.pose_pub = self.create_publisher(PoseStamped, "vlocnet/pose", 10)
@@ -131,6 +149,7 @@ class LocalizerNode(Node):
         self._incompatible: set[str] = set()
         for topic in self._inputs:
             self._subscribe(topic)
+        self._malloc_trim = _libc_malloc_trim()
         self.create_timer(1.0, self._publish_diagnostics)
         self.create_timer(0.5, self._resubscribe_incompatible)
 
@@ -166,11 +185,23 @@ class LocalizerNode(Node):
 
     def _on_image(self, msg) -> None:
         now = time.monotonic()
+        try:
+            conversions.check_image(msg)
+        except FrameError as err:  # refused from its header: never displaces a good frame in the mailbox
+            self.stats.arrived(now, False)
+            self._reject(err)
+            return
         self.stats.arrived(now, self._mailbox.put((msg, now)))
 
     def _on_depth(self, msg: Image) -> None:
+        key = _stamp_key(msg.header.stamp)
+        try:
+            conversions.check_depth(msg)
+        except FrameError as err:
+            self._ignore(err)
+            msg = None  # only its stamp is kept: the colour frame neither waits for it nor counts it missing
         with self._depth_arrived:
-            self._depths.append(msg)
+            self._depths.append((key, msg))
             self._depth_arrived.notify_all()
 
     def _on_camera_info(self, msg: CameraInfo) -> None:
@@ -194,6 +225,8 @@ class LocalizerNode(Node):
                 if self._stop.is_set() or not rclpy.ok(context=self.context):
                     return
                 self._reject(FrameError("internal_error", f"{type(err).__name__}: {err}"))
+            finally:
+                item = None  # the message and its buffers go now, not when the next frame arrives
 
     def _process(self, msg, arrival: float) -> None:
         if isinstance(msg, CompressedImage):
@@ -210,7 +243,7 @@ class LocalizerNode(Node):
             self._ignore(err)  # use the predicted depth for this frame
             result = self.localizer.step(image, encoding, stamp, intrinsics=self._intrinsics)
         if result.reset_reason not in (None, "start"):
-            self.get_logger().info(f"temporal state reset ({result.reset_reason}) at stamp {stamp:.3f}")
+            self.note(f"reset.{result.reset_reason}", f"temporal state reset ({result.reset_reason}) at stamp {stamp:.3f}")
         frame = msg.header.frame_id
         self.pose_pub.publish(conversions.pose_stamped(result, Header(stamp=msg.header.stamp, frame_id=self.params["map_frame"])))
         self.odom_pub.publish(conversions.odometry(result, Header(stamp=msg.header.stamp, frame_id=self.params["odom_frame"]),
@@ -221,18 +254,23 @@ class LocalizerNode(Node):
         self.stats.processed_frame(now, now - arrival, result.reset_reason)
 
     def _matching_depth(self, stamp):
-        """Depth (metres) with exactly this stamp, waiting up to ``DEPTH_WAIT_S`` for it; None: use the predicted depth."""
+        """Depth (metres) with exactly this stamp, waiting up to ``DEPTH_WAIT_S`` for it; None: use the predicted depth
+        (also when the depth image with this stamp was refused on arrival: counted then)."""
         if not self.params["depth_topic"]:
             return None
+        key = _stamp_key(stamp)
 
         def find():
-            return next((d for d in reversed(self._depths) if d.header.stamp == stamp), None)
+            return next((entry for entry in reversed(self._depths) if entry[0] == key), None)
 
         with self._depth_arrived:
             self._depth_arrived.wait_for(lambda: find() is not None, DEPTH_WAIT_S)
-            match = find()
-        if match is None:
+            entry = find()
+        if entry is None:
             self._ignore(FrameError("depth_missing", "no depth image with the colour image's stamp; using the predicted depth"))
+            return None
+        match = entry[1]
+        if match is None:
             return None
         try:
             return conversions.depth_to_array(match)
@@ -253,12 +291,27 @@ class LocalizerNode(Node):
     def _publish_diagnostics(self) -> None:
         status = self.stats.status("vlocnetpp_ros: localizer", self.get_fully_qualified_name())
         self.diag_pub.publish(DiagnosticArray(header=Header(stamp=self.get_clock().now().to_msg()), status=[status]))
+        if self._malloc_trim is not None:
+            self._malloc_trim(0)  # ~0.05 ms; ctypes releases the GIL meanwhile
 
     def close(self, timeout_s: float = 1.5) -> None:
         """Stop the worker (waits for the frame in progress, at most ``timeout_s``)."""
         self._stop.set()
         self._mailbox.close()
         self._worker.join(timeout_s)
+
+
+def _libc_malloc_trim():
+    """glibc's ``malloc_trim`` (return freed heap pages to the system), or None on another C library."""
+    try:
+        return ctypes.CDLL(None).malloc_trim
+    except (OSError, AttributeError):
+        return None
+
+
+def _stamp_key(stamp) -> tuple[int, int]:
+    """``builtin_interfaces/Time`` as a hashable value that holds no message."""
+    return int(stamp.sec), int(stamp.nanosec)
 
 
 def main(args: list[str] | None = None) -> int:
