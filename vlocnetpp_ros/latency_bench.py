@@ -30,21 +30,19 @@ import time
 from pathlib import Path
 
 import numpy as np
-import rclpy
 from geometry_msgs.msg import PoseStamped
-from rclpy.executors import SingleThreadedExecutor
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Image
 from std_msgs.msg import Header
 
 from vlocnetpp_core.errors import UserError
 from vlocnetpp_core.localizer import BACKENDS, Localizer, inference_threads
 from vlocnetpp_ros import conversions
+from vlocnetpp_ros.dds_client import RELIABLE as _QOS
+from vlocnetpp_ros.dds_client import DdsClient
 from vlocnetpp_ros.replay_bridge import _NodeProcess, localizer_command, node_arguments
 
 FRAME_INTERVAL_S = 0.05
 PROFILE = "fastdds_large_data.xml"
-_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE)
 
 
 def proc_status_mb(pid: int, key: str) -> float:
@@ -55,15 +53,11 @@ def proc_status_mb(pid: int, key: str) -> float:
     raise UserError(f"no {key} in /proc/{pid}/status")
 
 
-class _Probe:
+class _Probe(DdsClient):
     """Publisher of camera frames and recorder of the arrival time of the node's answers, by stamp."""
 
     def __init__(self, namespace: str):
-        self.context = rclpy.Context()
-        rclpy.init(context=self.context)
-        self.node = rclpy.create_node("vlocnetpp_latency_bench", namespace=namespace, context=self.context)
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
+        super().__init__("vlocnetpp_latency_bench", namespace)
         self.image_pub = self.node.create_publisher(Image, f"{namespace}/camera/image", _QOS)
         self.pose_at: dict[float, float] = {}
         self.seg_at: dict[float, float] = {}
@@ -78,19 +72,6 @@ class _Probe:
     def connected(self) -> bool:
         return self.image_pub.get_subscription_count() > 0 and all(s.get_publisher_count() > 0 for s in self.subs)
 
-    def spin_until(self, done, timeout_s: float) -> bool:
-        deadline = time.monotonic() + timeout_s
-        while not done():
-            left = deadline - time.monotonic()
-            if left <= 0:
-                return False
-            self.executor.spin_once(timeout_sec=min(left, 0.05))
-        return True
-
-    def close(self) -> None:
-        self.executor.shutdown(timeout_sec=1.0)
-        self.node.destroy_node()
-        self.context.try_shutdown()
 
 
 def large_data_profile() -> Path:
@@ -127,7 +108,7 @@ def measure(checkpoint: str, frames: np.ndarray, repetitions: int, warmup: int, 
     probe = _Probe(namespace)
     node = _NodeProcess(argv)
     try:
-        while not probe.spin_until(probe.connected, 0.2):
+        while not probe.spin_until(time.monotonic() + 0.2, probe.connected):
             node.check_alive()
             if time.perf_counter() - start > startup_timeout_s:
                 raise UserError(f"the localizer node did not connect within {startup_timeout_s:.0f} s:\n{node.tail()}")
@@ -158,7 +139,7 @@ def measure(checkpoint: str, frames: np.ndarray, repetitions: int, warmup: int, 
 def _through_node(probe: _Probe, node: _NodeProcess, msg: Image, stamp: float, timeout_s: float) -> float:
     sent = time.perf_counter()
     probe.image_pub.publish(msg)
-    if not probe.spin_until(lambda: stamp in probe.pose_at and stamp in probe.seg_at, timeout_s):
+    if not probe.spin_until(time.monotonic() + timeout_s, lambda: stamp in probe.pose_at and stamp in probe.seg_at):
         node.check_alive()
         raise UserError(f"the localizer node did not answer the frame stamped {stamp:.3f} s within {timeout_s:.0f} s:\n{node.tail()}")
     return probe.pose_at[stamp] - sent

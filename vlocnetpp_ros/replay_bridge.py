@@ -29,11 +29,8 @@ from collections import Counter, deque
 from contextlib import ExitStack
 from pathlib import Path
 
-import rclpy
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Odometry
-from rclpy.executors import SingleThreadedExecutor
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
 from vlocnetpp_core.bag import messages
@@ -41,9 +38,10 @@ from vlocnetpp_core.bag.bagfile import BagReader, BagWriter, sigterm_as_interrup
 from vlocnetpp_core.bag.convert import CAMERA_INFO_TOPIC, DEPTH_TOPIC
 from vlocnetpp_core.bag.replay import OUTPUT_TOPICS, ReplaySummary, choose_image_topic, copy_topics, groups_by_log_time
 from vlocnetpp_core.errors import DataError, UserError
+from vlocnetpp_ros.dds_client import RECORD as _RECORD
+from vlocnetpp_ros.dds_client import RELIABLE as _RELIABLE
+from vlocnetpp_ros.dds_client import DdsClient
 
-_RELIABLE = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE)
-_RECORD = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 _OUTPUT_TYPES = {"/vlocnet/pose": PoseStamped, "/vlocnet/odometry": Odometry, "/vlocnet/segmentation": Image}
 CAMERA_INFO_SETTLE_S = 0.5
 
@@ -116,15 +114,11 @@ class _NodeProcess:
         self.log.close()
 
 
-class _Bridge:
+class _Bridge(DdsClient):
     """The rclpy side: publishers to the node, raw subscriptions to its outputs, spun from the caller's thread."""
 
     def __init__(self, namespace: str, compressed: bool, use_depth: bool):
-        self.context = rclpy.Context()
-        rclpy.init(context=self.context)
-        self.node = rclpy.create_node("vlocnetpp_replay_bridge", namespace=namespace, context=self.context)
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
+        super().__init__("vlocnetpp_replay_bridge", namespace)
         image_type = CompressedImage if compressed else Image
         self.image_pub = self.node.create_publisher(image_type, f"{namespace}/camera/image" + ("/compressed" if compressed else ""), _RELIABLE)
         self.info_pub = self.node.create_publisher(CameraInfo, f"{namespace}/camera/camera_info", _RELIABLE)
@@ -135,23 +129,10 @@ class _Bridge:
             for topic, msg_type in _OUTPUT_TYPES.items()
         ]
 
-    def spin_until(self, deadline: float, done=lambda: False) -> bool:
-        """Process callbacks until ``done()`` or the monotonic ``deadline``; returns ``done()``."""
-        while not done():
-            left = deadline - time.monotonic()
-            if left <= 0:
-                return done()
-            self.executor.spin_once(timeout_sec=min(left, 0.01))
-        return True
-
     def connected(self) -> bool:
         pubs = [p for p in (self.image_pub, self.info_pub, self.depth_pub) if p is not None]
         return all(p.get_subscription_count() > 0 for p in pubs) and all(s.get_publisher_count() > 0 for s in self.subs)
 
-    def close(self) -> None:
-        self.executor.shutdown(timeout_sec=1.0)
-        self.node.destroy_node()
-        self.context.try_shutdown()
 
 
 def replay_through_node(bag: str | Path, out: str | Path, checkpoint: str | Path, image_topic: str | None = None,

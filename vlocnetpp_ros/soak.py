@@ -27,11 +27,8 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
-from rclpy.executors import SingleThreadedExecutor
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import Header
 
@@ -39,22 +36,18 @@ from vlocnetpp_core.checkpoint import shipped_checkpoint
 from vlocnetpp_core.errors import UserError
 from vlocnetpp_core.localizer import BACKENDS
 from vlocnetpp_ros import conversions, storm
+from vlocnetpp_ros.dds_client import RECORD as _RECORD
+from vlocnetpp_ros.dds_client import RELIABLE as _QOS
+from vlocnetpp_ros.dds_client import DdsClient
 from vlocnetpp_ros.latency_bench import proc_status_mb
 from vlocnetpp_ros.replay_bridge import _NodeProcess, localizer_command, node_arguments
 
-_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE)
-_RECORD = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 
-
-class _Feeder:
+class _Feeder(DdsClient):
     """Publishers to the node (image, depth, camera info) and the arrival times of its poses and diagnostics."""
 
     def __init__(self, namespace: str):
-        self.context = rclpy.Context()
-        rclpy.init(context=self.context)
-        self.node = rclpy.create_node("vlocnetpp_soak", namespace=namespace, context=self.context)
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
+        super().__init__("vlocnetpp_soak", namespace)
         self.pubs = {
             "image": self.node.create_publisher(Image, f"{namespace}/camera/image", _QOS),
             "depth": self.node.create_publisher(Image, f"{namespace}/camera/depth", _QOS),
@@ -77,19 +70,6 @@ class _Feeder:
 
     def connected(self) -> bool:
         return all(p.get_subscription_count() > 0 for p in self.pubs.values()) and self.subs[0].get_publisher_count() > 0
-
-    def spin_until(self, deadline: float, done=lambda: False) -> bool:
-        while not done():
-            left = deadline - time.monotonic()
-            if left <= 0:
-                return done()
-            self.executor.spin_once(timeout_sec=min(left, 0.01))
-        return True
-
-    def close(self) -> None:
-        self.executor.shutdown(timeout_sec=1.0)
-        self.node.destroy_node()
-        self.context.try_shutdown()
 
 
 def _camera(width: int, height: int, seed: int = 0) -> tuple[list[np.ndarray], np.ndarray]:
