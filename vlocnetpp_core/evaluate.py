@@ -29,10 +29,8 @@ from vlocnetpp_core.report import (
     add_report_arguments,
     check_report_args,
     format_report,
-    parse_lengths,
     sample_positions,
     sequence_name,
-    thresholds_from_args,
     write_outputs,
 )
 
@@ -58,19 +56,19 @@ def _check_mask(frame, mask: np.ndarray) -> None:
 
 
 def run_localizer(localizer, index, max_frames: int | None = None, samples: int = 3, use_depth: bool = False,
-                  progress: bool = True) -> tuple[list[SequenceResult], dict[str, int], list[np.ndarray]]:
+                  progress: bool = True, describe: bool = False) -> tuple[list[SequenceResult], dict[str, int], list[np.ndarray] | None]:
     """Stream every sequence of ``index`` (a ``DatasetIndex``) through ``localizer`` (a ``Localizer``).
 
     The temporal state is reset at each sequence start. Frames the localizer rejects
     (``FrameError``, e.g. non-finite outputs) are left out, as the node drops them; the count per
-    reason is returned with the per-sequence results, and the retrieval descriptors ``(N_k, D)`` of
-    the frames of each result (:func:`vlocnetpp_core.retrieval.describe`). ``ms`` is the
+    reason is returned with the per-sequence results, and with ``describe`` the retrieval descriptors
+    ``(N_k, D)`` of the frames of each result (:func:`vlocnetpp_core.retrieval.describe`; else None). ``ms`` is the
     localizer's own wall time of ``step`` (decoding the dataset files is not included).
     """
     from tqdm import tqdm
 
     from vlocnetpp_core.preprocess import FrameError
-    from vlocnetpp_core.retrieval import describe
+    from vlocnetpp_core.retrieval import describe as describe_image
 
     ranges = [r if max_frames is None else r[:max_frames] for r in index.sequences]
     bar = tqdm(total=sum(len(r) for r in ranges), unit="frame", desc="evaluate", disable=not progress, dynamic_ncols=True)
@@ -88,7 +86,7 @@ def run_localizer(localizer, index, max_frames: int | None = None, samples: int 
             localizer.reset("start")
             described = []
             for i in rng:
-                frame = index.load(i)
+                frame = index.load(i, depth=use_depth)
                 bar.update(1)
                 try:
                     out = localizer.step(frame.image, "rgb8", frame.stamp, depth=frame.depth if use_depth else None, intrinsics=frame.intrinsics)
@@ -96,7 +94,8 @@ def run_localizer(localizer, index, max_frames: int | None = None, samples: int 
                     rejected[err.reason] = rejected.get(err.reason, 0) + 1
                     continue
                 _check_mask(frame, out.mask)
-                described.append(describe(frame.image))
+                if describe:
+                    described.append(describe_image(frame.image))
                 recorder.add(frame.stamp, frame.t, frame.q, out.t, out.q, out.rel_t, out.rel_q, out.seconds * 1000.0)
                 if frame.labels is not None:
                     recorder.add_labels(frame.labels, out.mask)
@@ -104,17 +103,17 @@ def run_localizer(localizer, index, max_frames: int | None = None, samples: int 
                     recorder.add_sample(frame.image, out.mask, frame.labels)
             if len(recorder):
                 results.append(recorder.result())
-                descriptors.append(np.stack(described))
+                if describe:
+                    descriptors.append(np.stack(described))
     finally:
         bar.close()
-    return results, rejected, descriptors
+    return results, rejected, descriptors if describe else None
 
 
 def run(args: argparse.Namespace) -> int:
-    thresholds, lengths = thresholds_from_args(args), parse_lengths(args.odometry_lengths)
     if args.max_frames is not None and args.max_frames < 1:
         raise UserError(f"--max-frames must be >= 1, got {args.max_frames}")
-    check_report_args(args)
+    thresholds, lengths = check_report_args(args)
 
     from vlocnetpp_core.data import open_dataset
     from vlocnetpp_core.localizer import Localizer
@@ -125,7 +124,8 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"{args.data}: split {args.split!r} has no frames")
     reference = _reference(args, index.format)
     localizer = Localizer.from_checkpoint(args.checkpoint, device=args.device)
-    results, rejected, descriptors = run_localizer(localizer, index, args.max_frames, args.samples, args.use_depth, progress=not args.no_progress)
+    results, rejected, descriptors = run_localizer(localizer, index, args.max_frames, args.samples, args.use_depth,
+                                                   progress=not args.no_progress, describe=reference is not None)
     if not results:
         raise UserError(f"{args.checkpoint}: the localizer rejected every frame ({rejected})")
     class_names = localizer.class_names if len(localizer.class_names) == localizer.num_classes else CLASS_NAMES[: localizer.num_classes]

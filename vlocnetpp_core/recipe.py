@@ -36,6 +36,7 @@ training images as ``NAME.reference.npz`` (the baseline ``evaluate`` and the dem
 from __future__ import annotations
 
 import json
+import shlex
 import subprocess
 import sys
 import time
@@ -202,7 +203,7 @@ def _run_group(group: list[Stage], recipe: Recipe, out: Path, log) -> None:
         commands = stage_commands(stage, recipe, out)
         if not commands:
             continue
-        script = " && ".join(subprocess.list2cmdline(c) for c in commands)
+        script = " && ".join(shlex.join(c) for c in commands)
         logf = open(out / f"{stage.name}.log", "a")
         log(f"stage {stage.name}: {stage.stage} to step {stage.steps} (log {out / f'{stage.name}.log'})")
         procs.append((stage, subprocess.Popen(["bash", "-c", script], stdout=logf, stderr=subprocess.STDOUT), logf))

@@ -69,10 +69,10 @@ def parse_lengths(text: str | None) -> list[float] | None:
     return lengths
 
 
-def check_report_args(args: argparse.Namespace) -> None:
-    """Fail before a (long) run when a flag is invalid or an output path cannot be written."""
-    thresholds_from_args(args)
-    parse_lengths(args.odometry_lengths)
+def check_report_args(args: argparse.Namespace) -> tuple[list[tuple[float, float]], list[float] | None]:
+    """The pose thresholds and odometry lengths of the flags; fails before a (long) run when a flag is
+    invalid or an output path cannot be written."""
+    thresholds, lengths = thresholds_from_args(args), parse_lengths(args.odometry_lengths)
     if args.samples < 0:
         raise UserError(f"--samples must be >= 0, got {args.samples}")
     if args.json and Path(args.json).is_dir():
@@ -82,6 +82,7 @@ def check_report_args(args: argparse.Namespace) -> None:
             raise UserError(f"{flag} {folder}: exists and is not a folder")
     if args.reference and not Path(args.reference).exists():
         raise UserError(f"--reference {args.reference}: not found (a dataset folder or a reference .npz)")
+    return thresholds, lengths
 
 
 # --------------------------------------------------------------------------- sequences
@@ -106,6 +107,7 @@ def add_baseline(report: dict, results: Sequence[SequenceResult], descriptors: S
     frames of ``results`` (``descriptors[k] (N_k, D)``) and store it as ``report["baseline"]``."""
     from vlocnetpp_core.retrieval import retrieval_results
 
+    # pose metrics only (no odometry: the segment lengths are a placeholder)
     scored = evaluate_sequences(retrieval_results(reference, results, descriptors), thresholds, [1.0])
     net, base = report["overall"]["pose"], scored["overall"]["pose"]
     report["baseline"] = {

@@ -115,7 +115,8 @@ class ReferenceSet:
 
         frames = tqdm(range(len(index)), desc="retrieval reference", unit="frame", disable=not progress, dynamic_ncols=True)
         source = f"{index.root} ({index.split})"
-        return cls.from_images(((f.image, f.t, f.q) for f in map(index.load, frames)), source)
+        loaded = (index.load(i, depth=False, labels=False) for i in frames)  # the images alone
+        return cls.from_images(((f.image, f.t, f.q) for f in loaded), source)
 
 
 def reference_of(checkpoint: str | Path) -> Path:

@@ -48,8 +48,6 @@ from vlocnetpp_core.report import (
     add_report_arguments,
     check_report_args,
     format_report,
-    parse_lengths,
-    thresholds_from_args,
     write_outputs,
 )
 from vlocnetpp_core.trajectory import matrix_to_quat, pose_matrices
@@ -226,10 +224,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from vlocnetpp_core.retrieval import open_reference
 
-    thresholds, lengths = thresholds_from_args(args), parse_lengths(args.odometry_lengths)
     if not (math.isfinite(args.max_gap_s) and args.max_gap_s > 0):
         raise UserError(f"--max-gap-s must be a positive number of seconds, got {args.max_gap_s}")
-    check_report_args(args)
+    thresholds, lengths = check_report_args(args)
     reference = open_reference(args.reference) if args.reference else None
     results, descriptors = collect_results(args.bag, args.ground_truth_topic, args.max_gap_s, args.samples if args.plots else 0,
                                            describe=reference is not None)
