@@ -27,6 +27,14 @@ setup(
         "console_scripts": [
             "localizer = vlocnetpp_ros.node:main",
             "vlocnetpp = vlocnetpp_core.cli:main",
+            "vlocnetpp-replay-node = vlocnetpp_ros.replay_bridge:main",
+            "vlocnetpp-latency-bench = vlocnetpp_ros.latency_bench:main",
+            "vlocnetpp-soak = vlocnetpp_ros.soak:main",
+        ],
+        # the ROS programs the core starts by name (vlocnetpp_core/programs.py)
+        "vlocnetpp.programs": [
+            "replay-node = vlocnetpp_ros.replay_bridge:main",
+            "latency-bench = vlocnetpp_ros.latency_bench:main",
         ],
     },
 )

@@ -8,7 +8,8 @@ import signal
 import subprocess
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import cv2
@@ -17,16 +18,19 @@ import rclpy
 import yaml
 from conftest import install_env
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import PoseStamped
+from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
-from sensor_msgs.msg import Image
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import CompressedImage, Image
 from std_msgs.msg import Header
 
 from vlocnetpp_ros import conversions
 
-OUTPUTS = {"pose": ("vlocnet/pose", PoseStamped), "odom": ("vlocnet/odometry", Odometry), "seg": ("vlocnet/segmentation", Image)}
+OUTPUTS = {"pose": ("vlocnet/pose", PoseStamped), "pwc": ("vlocnet/pose_with_covariance", PoseWithCovarianceStamped),
+           "odom": ("vlocnet/odometry", Odometry), "seg": ("vlocnet/segmentation", Image)}
+CAMERA = "/camera/image_raw"
 
 
 def domain_id(base: int) -> int:
@@ -97,6 +101,36 @@ class Harness:
         self._thread.join(2.0)
         self.executor.shutdown(timeout_sec=1.0)
         self.node.destroy_node()
+
+
+@contextmanager
+def localizer_nodes(checkpoint: Path, domain: int) -> Iterator[Callable[..., tuple[Node, Harness]]]:
+    """``make(**params) -> (LocalizerNode, Harness)``: a localizer node on ``checkpoint`` (one thread, ``params``
+    overriding) and a tester, in their own context on ``domain``, spinning in the background and subscribed to
+    the camera; everything made is torn down on exit."""
+    from vlocnetpp_ros.node import LocalizerNode
+
+    made = []
+
+    def make(**params):
+        ctx = rclpy.Context()
+        rclpy.init(context=ctx, domain_id=domain)
+        overrides = {"checkpoint": str(checkpoint), "num_threads": 1, **params}
+        node = LocalizerNode(context=ctx, parameter_overrides=[Parameter(k, value=v) for k, v in overrides.items()])
+        tester = Harness(ctx, extra_nodes=(node,))
+        made.append((ctx, node, tester))
+        topic = CAMERA + "/compressed" if params.get("use_compressed") else CAMERA
+        tester.wait_for_subscriber(topic, CompressedImage if params.get("use_compressed") else Image)
+        return node, tester
+
+    try:
+        yield make
+    finally:
+        for ctx, node, tester in made:
+            tester.close()
+            node.close()
+            node.destroy_node()
+            ctx.try_shutdown()
 
 
 def wait_until(condition: Callable[[], bool], timeout: float = 20.0, what: str = "condition") -> None:

@@ -19,13 +19,13 @@ from data_fixtures import trajectory, write_deeploc_split
 from vlocnetpp_core.bag import messages
 from vlocnetpp_core.bag.bagfile import BagReader
 from vlocnetpp_core.bag.evaluate_bag import read_matched_frames
-from vlocnetpp_core.bag.replay import ODOMETRY_TOPIC, POSE_TOPIC, SEGMENTATION_TOPIC
+from vlocnetpp_core.bag.replay import ODOMETRY_TOPIC, POSE_TOPIC, POSE_WITH_COVARIANCE_TOPIC, SEGMENTATION_TOPIC
 from vlocnetpp_core.checkpoint import init_checkpoint
 from vlocnetpp_core.cli import main
 from vlocnetpp_core.model import load_model_config
 
 REPO = Path(__file__).resolve().parents[1]
-OUTPUTS = (POSE_TOPIC, ODOMETRY_TOPIC, SEGMENTATION_TOPIC)
+OUTPUTS = (POSE_TOPIC, POSE_WITH_COVARIANCE_TOPIC, ODOMETRY_TOPIC, SEGMENTATION_TOPIC)
 LOOP_A, LOOP_B = list(range(1, 8)), list(range(51, 57))  # two loops -> two sequences, 10 s apart in the bag
 # Node over DDS vs in-process replay: the same float32 network run with other thread counts (another
 # summation order). Its outputs (poses in metres, unit quaternions: values of order 1) then differ by a
@@ -49,12 +49,14 @@ def setup(tmp_path_factory):
 
 
 def _outputs(path: Path) -> dict[tuple[str, int], np.ndarray]:
-    """(topic, stamp) -> the numbers of every /vlocnet/* message (pose, odometry pose, mask pixels)."""
+    """(topic, stamp) -> the numbers of every /vlocnet/* message (pose, pose and covariance, odometry pose, mask pixels)."""
     out = {}
     with BagReader(path) as reader:
         for topic, _, msg in reader.messages(OUTPUTS):
             if topic == POSE_TOPIC:
                 value = np.concatenate(messages.pose_from_msg(msg.pose))
+            elif topic == POSE_WITH_COVARIANCE_TOPIC:
+                value = np.concatenate((*messages.pose_from_msg(msg.pose.pose), msg.pose.covariance))
             elif topic == ODOMETRY_TOPIC:
                 value = np.concatenate(messages.pose_from_msg(msg.pose.pose))
             else:
@@ -73,8 +75,11 @@ def test_replay_writes_inputs_and_outputs(setup):
         assert sorted(outputs) == sorted((t, s) for t in OUTPUTS for s in stamps)
         odom = [m for _, _, m in dst.messages([ODOMETRY_TOPIC])]
         pose = next(m for _, _, m in dst.messages([POSE_TOPIC]))
+        pose_cov = next(m for _, _, m in dst.messages([POSE_WITH_COVARIANCE_TOPIC]))
         seg = next(m for _, _, m in dst.messages([SEGMENTATION_TOPIC]))
     assert pose.header.frame_id == "map" and odom[0].header.frame_id == "odom" and odom[0].child_frame_id == "camera"
+    assert pose_cov.header == pose.header and pose_cov.pose.pose == pose.pose
+    assert np.asarray(pose_cov.pose.covariance).reshape(6, 6).diagonal().min() > 0
     assert (seg.encoding, seg.width, seg.height, seg.header.frame_id) == ("mono8", 96, 72, "camera")
     assert all(np.asarray(m.pose.covariance).reshape(6, 6).diagonal().min() > 0 for m in odom)
     # the first frame of each sequence has no motion (temporal state reset: at start, and after the 10 s gap)

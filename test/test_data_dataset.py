@@ -82,3 +82,24 @@ def test_reproducible_and_picklable_for_workers(deeploc_index):
     batches = list(loader)
     assert sum(len(x["index"]) for x in batches) == len(ds)
     assert batches[0]["image"].shape == (4, 2, 3, 48, 64)
+
+
+@pytest.mark.parametrize("seg", [False, True])
+def test_training_frames_cached_in_memory_give_the_clips_decoded_per_clip(deeploc_index, seg):
+    """The frame cache changes speed, not data: at the network size (no zoom) every clip, its pixels, depth,
+    labels, poses and intrinsics, equals the one decoded from the files, with the same augmentation draw."""
+    from vlocnetpp_core.train_data import SeededClips, training_clips
+
+    size = (64, 48)
+    transform = make_transform(True, size, scale=(1.0, 1.0))
+    logs = []
+    cached = SeededClips(training_clips(deeploc_index, 3, transform, (1, 2), seg, cache_size=size, log=logs.append))
+    plain = SeededClips(training_clips(deeploc_index, 3, transform, (1, 2), seg))
+    assert len(logs) == 1 and "into memory" in logs[0]
+    assert len(cached) == len(plain) > 0
+    for i in range(len(plain)):
+        a, b = cached[(i, 100 + i)], plain[(i, 100 + i)]
+        assert a.keys() == b.keys()
+        for key in a:
+            assert torch.equal(a[key], b[key]), key
+    assert bool(cached[(0, 1)]["has_labels"]) == seg

@@ -44,7 +44,7 @@ def test_evaluate_writes_report_trajectories_and_plots(evaluated, capsys):
     report = json.loads((out / "metrics.json").read_text())
     assert list(report) == ["overall", "per_sequence", "baseline", "meta"]
     assert report["meta"] == {"checkpoint": str(tmp / "ckpt" / "lite"), "data": str(tmp / "data"), "split": "test",
-                              "untrained_tasks": None}  # the sidecar does not say how it was trained
+                              "tasks": ["loc", "vo", "seg"], "untrained_tasks": None}  # the sidecar does not say how it was trained
     assert "note:" not in stdout
     assert any(line.split()[:2] == ["retrieval", str(FRAMES)] for line in stdout.splitlines())
     assert list(report["per_sequence"]) == ["seq-00"]

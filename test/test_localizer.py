@@ -213,12 +213,20 @@ def test_from_checkpoint_errors(tmp_path: Path, checkpoint: Path):
             Localizer.from_checkpoint(checkpoint, device="cuda")
 
 
-def test_inference_threads_leave_a_core_to_ros():
+def test_one_meaning_of_threads_and_no_process_wide_setting_in_the_localizer(checkpoint):
     import os
 
-    from vlocnetpp_core.localizer import inference_threads
+    from vlocnetpp_core.threads import resolve_threads, use_threads
 
-    assert inference_threads(3) == 3
-    assert inference_threads(0) == max(1, (os.cpu_count() or 1) - 1)
+    assert resolve_threads(3) == 3
+    assert resolve_threads(0) == max(1, (os.cpu_count() or 1) - 1)
     with pytest.raises(ValueError):
-        inference_threads(-1)
+        resolve_threads(-1)
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        Localizer.from_checkpoint(checkpoint, num_threads=1)
+        assert torch.get_num_threads() == 2  # building a Localizer leaves the process's setting alone
+        assert use_threads(1) == 1 and torch.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(before)

@@ -126,3 +126,28 @@ def test_network_input_resizes_anisotropically_and_scales_the_intrinsics():
     with pytest.raises(FrameError) as err:
         network_input(rgb, (64, 48), K, depth[:70])
     assert err.value.reason == "depth_size"
+
+
+@pytest.mark.parametrize("size", [(64, 48), (80, 96), (224, 128)])  # 96x72 images: shrunk, one side each way, enlarged
+def test_a_dataset_frame_and_the_same_image_through_the_node_give_identical_network_inputs(tmp_path, size):
+    """Evaluation reads frames through the dataset transform; the node gets them as sensor_msgs/Image and
+    the Localizer's preprocessing: both must hand the network the same pixels, intrinsics and depth."""
+    from builtin_interfaces.msg import Time
+    from data_fixtures import trajectory, write_deeploc_split
+    from std_msgs.msg import Header
+
+    from vlocnetpp_core.data import ClipDataset, make_transform, open_dataset
+    from vlocnetpp_core.data.imageio import read_rgb
+    from vlocnetpp_ros import conversions
+
+    t, q = trajectory(2)
+    write_deeploc_split(tmp_path, "test", [1, 2], t, q, depth="pfm")
+    index = open_dataset(tmp_path, None, "test")
+    clips = ClipDataset(index, 1, make_transform(False, size))
+    for i, record in enumerate(index.records):
+        item = clips[i]
+        msg = conversions.array_to_image(read_rgb(record.image), "rgb8", Header(stamp=Time(), frame_id="camera"))
+        image, K, depth = network_input(to_rgb(conversions.image_to_array(msg), msg.encoding), size, index.intrinsics, index.load(i).depth)
+        assert torch.equal(image[0], item["image"][0])
+        assert torch.allclose(K[0], item["K"][0], rtol=1e-6)
+        assert torch.equal(depth[0], item["depth"][0])

@@ -16,7 +16,7 @@ import rclpy
 import torch
 import yaml
 from conftest import REPO
-from node_fixtures import Harness, camera_frames, diagnostic_values, domain_id, image_msg, wait_until
+from node_fixtures import CAMERA, Harness, camera_frames, diagnostic_values, domain_id, image_msg, localizer_nodes, wait_until
 from rclpy.parameter import Parameter
 from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
@@ -32,7 +32,6 @@ from vlocnetpp_ros.diagnostics import MAX_EVENTS, MAX_KEYS, MAX_LINE, NodeStats,
 from vlocnetpp_ros.node import PARAMETERS, LocalizerNode, default_checkpoint
 
 DOMAIN = domain_id(20)
-CAMERA = "/camera/image_raw"
 
 
 @pytest.fixture(scope="module")
@@ -44,25 +43,8 @@ def checkpoint(tmp_path_factory) -> Path:
 def make_node(checkpoint: Path, monkeypatch):
     """``make_node(**params) -> (LocalizerNode, Harness)`` spinning in the background; torn down after the test."""
     monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    made = []
-
-    def make(**params):
-        ctx = rclpy.Context()
-        rclpy.init(context=ctx, domain_id=DOMAIN)
-        overrides = {"checkpoint": str(checkpoint), "num_threads": 1, **params}
-        node = LocalizerNode(context=ctx, parameter_overrides=[Parameter(k, value=v) for k, v in overrides.items()])
-        tester = Harness(ctx, extra_nodes=(node,))
-        made.append((ctx, node, tester))
-        topic = CAMERA + "/compressed" if params.get("use_compressed") else CAMERA
-        tester.wait_for_subscriber(topic, CompressedImage if params.get("use_compressed") else Image)
-        return node, tester
-
-    yield make
-    for ctx, node, tester in made:
-        tester.close()
-        node.close()
-        node.destroy_node()
-        ctx.try_shutdown()
+    with localizer_nodes(checkpoint, DOMAIN) as make:
+        yield make
 
 
 def _send_and_wait(tester: Harness, msg, condition, what: str) -> None:

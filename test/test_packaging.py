@@ -21,7 +21,7 @@ def test_colcon_install_tree_has_what_ros2_run_needs(colcon_install: Path):
     assert (prefix / "lib" / "vlocnetpp_ros" / "vlocnetpp").is_file()
     share = prefix / "share" / "vlocnetpp_ros"
     assert (share / "package.xml").is_file()
-    for name in ("paper.yaml", "lite.yaml", "localizer.yaml"):
+    for name in ("paper.yaml", "lite.yaml", "lite_pose.yaml", "localizer.yaml"):
         assert (share / "config" / name).is_file(), name
     assert (prefix / "share" / "ament_index" / "resource_index" / "packages" / "vlocnetpp_ros").is_file()
     # ament_index_python finds the package once the install tree is on AMENT_PREFIX_PATH
@@ -38,6 +38,13 @@ def test_installed_cli_runs_from_install_tree(colcon_install: Path):
     out = subprocess.run([str(exe), "--help"], env=env, cwd="/", capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
     assert "synth" in out.stdout and "train" in out.stdout
+    for name in ("vlocnetpp-replay-node", "vlocnetpp-latency-bench", "vlocnetpp-soak"):
+        assert (exe.parent / name).is_file(), name
+    # the ROS programs the core starts are found from the install tree's metadata, by name
+    code = "from vlocnetpp_core.programs import program_command as p; print(p('replay-node')[-1], p('latency-bench')[-1])"
+    out = subprocess.run([sys.executable, "-c", code], env=env, cwd="/", capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["vlocnetpp_ros.replay_bridge", "vlocnetpp_ros.latency_bench"]
 
 
 def test_package_xml_is_format_3_ament_python():
@@ -66,6 +73,9 @@ def test_core_never_imports_ros():
     ros = {"rclpy", "sensor_msgs", "geometry_msgs", "nav_msgs", "std_msgs", "diagnostic_msgs", "builtin_interfaces", "vlocnetpp_ros"}
     offenders = {str(p.relative_to(REPO)): sorted(_imports(p) & ros) for p in (REPO / "vlocnetpp_core").rglob("*.py")}
     assert not {k: v for k, v in offenders.items() if v}
+    # nor starts a module of the ROS package by name (it asks for a registered program: vlocnetpp_core/programs.py)
+    named = [str(p.relative_to(REPO)) for p in (REPO / "vlocnetpp_core").rglob("*.py") if "vlocnetpp_ros." in p.read_text()]
+    assert not named
     # and importing every core module at runtime does not pull rclpy in
     code = (
         "import importlib, pkgutil, sys, vlocnetpp_core\n"

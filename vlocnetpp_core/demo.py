@@ -18,11 +18,12 @@ from __future__ import annotations
 import argparse
 import shutil
 import subprocess
-import sys
 import time
 from pathlib import Path
 
+from vlocnetpp_core.bag import topics
 from vlocnetpp_core.errors import UserError
+from vlocnetpp_core.programs import program_command
 
 TRAINING_SEED = 0  # the visits the shipped model was trained on (config/recipes/shipped.yaml)
 
@@ -81,7 +82,7 @@ def run(args: argparse.Namespace) -> int:
 
     t0 = _step(3, "replaying the bag through the real 'localizer' node over DDS (one frame at a time, every frame processed)")
     result_bag = out / "localized.mcap"
-    cmd = [sys.executable, "-m", "vlocnetpp_ros.replay_bridge", str(bag), "--checkpoint", str(checkpoint),
+    cmd = [*program_command("replay-node"), str(bag), "--checkpoint", str(checkpoint),
            "--out", str(result_bag), "--through-node", "--rate", "max"]
     proc = subprocess.run(cmd, capture_output=True, text=True)
     if proc.returncode != 0:
@@ -113,7 +114,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"through the node: {1000 * wall:.1f} ms per frame (image published -> pose received, lockstep, including DDS)")
     print()
     write_outputs(report, results, CLASS_NAMES, out / "metrics.json", None, out / "plots")
-    print(f"output bag: {result_bag} (input topics + /vlocnet/pose, /vlocnet/odometry, /vlocnet/segmentation)")
+    print(f"output bag: {result_bag} (input topics + {', '.join(topics.OUTPUT_TOPICS)})")
     print(f"demo finished in {time.perf_counter() - start:.0f} s")
     return 0
 

@@ -12,7 +12,9 @@ scored on the same frames: the pose of the most similar image of ``--reference``
 training split of ``--data``), as a row under the table and as ``baseline`` in the JSON.
 
 Segmentation is scored at the dataset image resolution: the localizer brings its class-id mask
-back to the size of the image it was given (nearest neighbour), as the node publishes it.
+back to the size of the image it was given (nearest neighbour), as the node publishes it. A pose-only
+checkpoint (no semantic stream) has no mask: its report has no ``segmentation`` entries and the table
+no segmentation columns (:func:`vlocnetpp_core.report.without_segmentation`).
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ from vlocnetpp_core.report import (
     format_report,
     sample_positions,
     sequence_name,
+    without_segmentation,
     write_outputs,
 )
 
@@ -93,10 +96,12 @@ def run_localizer(localizer, index, max_frames: int | None = None, samples: int 
                 except FrameError as err:
                     rejected[err.reason] = rejected.get(err.reason, 0) + 1
                     continue
-                _check_mask(frame, out.mask)
                 if describe:
                     described.append(describe_image(frame.image))
                 recorder.add(frame.stamp, frame.t, frame.q, out.t, out.q, out.rel_t, out.rel_q, out.seconds * 1000.0)
+                if out.mask is None:  # a pose-only model
+                    continue
+                _check_mask(frame, out.mask)
                 if frame.labels is not None:
                     recorder.add_labels(frame.labels, out.mask)
                 if i in keep:
@@ -131,10 +136,14 @@ def run(args: argparse.Namespace) -> int:
     class_names = localizer.class_names if len(localizer.class_names) == localizer.num_classes else CLASS_NAMES[: localizer.num_classes]
 
     report = evaluate_sequences(results, thresholds, lengths, class_names)
+    if not localizer.has_segmentation:
+        without_segmentation(report, "none: the model has no semantic stream (a pose-only config)")
     if reference is not None:
         add_baseline(report, results, descriptors, reference, thresholds)
-    untrained = untrained_tasks(localizer.meta)
-    report["meta"] = {"checkpoint": str(args.checkpoint), "data": str(args.data), "split": args.split, "untrained_tasks": untrained}
+    tasks = localizer.model.config.tasks
+    untrained = untrained_tasks(localizer.meta, tasks)
+    report["meta"] = {"checkpoint": str(args.checkpoint), "data": str(args.data), "split": args.split, "tasks": list(tasks),
+                      "untrained_tasks": untrained}
     print(format_report(report, {r.name: len(r.stamps) for r in results}))
     if reference is None:
         print(f"note: no retrieval baseline: --data has no other split than {args.split!r} to look frames up in; give --reference")
@@ -160,11 +169,13 @@ def _reference(args: argparse.Namespace, format: str):
     return None
 
 
-def untrained_tasks(meta: dict) -> list[str] | None:
-    """Tasks (``loc``, ``vo``, ``seg``) the checkpoint with sidecar ``meta`` was not trained for; None when its
+def untrained_tasks(meta: dict, model_tasks: tuple[str, ...] | None = None) -> list[str] | None:
+    """Tasks of the network (``model_tasks``, ``ModelConfig.tasks``: ``loc``, ``vo``, and ``seg`` unless
+    pose-only; default all three) the checkpoint with sidecar ``meta`` was not trained for; None when its
     sidecar does not say how it was trained."""
     from vlocnetpp_core.model.assembly import trained_tasks
-    from vlocnetpp_core.model.stages import TASK_NAMES
+    from vlocnetpp_core.model.config import TASKS
 
-    trained = trained_tasks(meta.get("training") or {})
-    return None if trained is None else [t for t in TASK_NAMES if t not in trained]
+    model_tasks = TASKS if model_tasks is None else model_tasks
+    trained = trained_tasks(meta.get("training") or {}, model_tasks)
+    return None if trained is None else [t for t in model_tasks if t not in trained]

@@ -19,7 +19,8 @@ Per frame (:meth:`Localizer.step`):
   twist = relative motion / dt in the current camera frame (linear ``R_rel^T t_rel / dt`` m/s,
   angular = rotation vector of ``R_rel`` / dt rad/s); 6x6 covariances from the checkpoint
   calibration; the class-id mask at the resolution of the given image (argmax at network
-  resolution, brought back with exact nearest neighbour).
+  resolution, brought back with exact nearest neighbour), or ``None`` for a pose-only model (no
+  semantic stream: :attr:`Localizer.has_segmentation` is False).
 
 Temporal state is reset (the next frame is a first frame: global pose from the image alone,
 relative pose identity, odometry holds where it was, twist zero with unknown covariance) at
@@ -37,7 +38,6 @@ motions accumulated), a random walk; twist = ``odometry_variance / dt^2``, or
 
 from __future__ import annotations
 
-import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -77,31 +77,22 @@ class LocalizerResult:
     pose_covariance: np.ndarray  # (6, 6) of the global pose
     odom_covariance: np.ndarray  # (6, 6) of the odometry pose
     twist_covariance: np.ndarray  # (6, 6)
-    mask: np.ndarray  # (H, W) uint8 class ids at the resolution of the given image
+    mask: np.ndarray | None  # (H, W) uint8 class ids at the resolution of the given image; None: the model has no semantic stream
     reset_reason: str | None  # why the temporal state was reset before this frame, None when it was not
     seconds: float  # wall time of the step
-
-
-def inference_threads(requested: int = 0) -> int:
-    """CPU threads for inference beside a ROS executor: ``requested``, or with 0 all cores but one
-    (at least 1), so that the DDS and executor threads keep a core and do not stall the model's
-    OpenMP threads (measured in docs/performance.md)."""
-    if requested < 0:
-        raise ValueError(f"threads must be >= 0, got {requested}")
-    return int(requested) or max(1, (os.cpu_count() or 1) - 1)
 
 
 class Localizer:
     """Streaming inference with temporal state. Build with :meth:`from_checkpoint`."""
 
     def __init__(self, model: torch.nn.Module, meta: dict, device: str | torch.device = "cpu", max_gap_s: float = 1.0,
-                 num_threads: int | None = None, backend: str = "torch", onnx_path: str | Path | None = None):
-        """``backend``: ``"torch"`` runs ``model.step``; ``"onnx"`` runs the exported step with ONNX Runtime
-        (``onnx_path`` if it matches these weights, else a cached export; see :mod:`vlocnetpp_core.onnx_backend`)."""
+                 num_threads: int = 0, backend: str = "torch", onnx_path: str | Path | None = None):
+        """``backend``: ``"torch"`` runs ``model.step`` with the process's torch threads (set by the program:
+        :func:`vlocnetpp_core.threads.use_threads`); ``"onnx"`` runs the exported step with ONNX Runtime in
+        a session of ``num_threads`` threads (:mod:`vlocnetpp_core.threads`; ``onnx_path`` if it matches these
+        weights, else a cached export; see :mod:`vlocnetpp_core.onnx_backend`)."""
         if backend not in BACKENDS:
             raise UserError(f"backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
-        if num_threads:
-            torch.set_num_threads(int(num_threads))
         self.device = torch.device(device)
         self.model = model.to(self.device).eval()
         self.backend = backend
@@ -124,7 +115,7 @@ class Localizer:
         self.reset("start")
 
     @classmethod
-    def from_checkpoint(cls, path: str | Path, device: str = "cpu", max_gap_s: float = 1.0, num_threads: int | None = None,
+    def from_checkpoint(cls, path: str | Path, device: str = "cpu", max_gap_s: float = 1.0, num_threads: int = 0,
                         backend: str = "torch") -> Localizer:
         """Load ``NAME.safetensors`` + ``NAME.json`` (see :mod:`vlocnetpp_core.checkpoint`); the onnx
         backend uses ``NAME.onnx`` next to them when it was exported from these weights."""
@@ -133,6 +124,12 @@ class Localizer:
         model, meta = load_checkpoint(path, device=device)
         return cls(model, meta, device=device, max_gap_s=max_gap_s, num_threads=num_threads, backend=backend,
                    onnx_path=checkpoint_paths(path)[0].with_suffix(".onnx"))
+
+    @property
+    def has_segmentation(self) -> bool:
+        """Whether the loaded model produces a class-id mask (:attr:`LocalizerResult.mask` not None): it has a
+        semantic stream (``model.semantic``) and at least one class. False for a pose-only model (``lite_pose``)."""
+        return getattr(self.model, "semantic", None) is not None and self.num_classes > 0
 
     def reset(self, reason: str = "request", clear_odometry: bool = False) -> None:
         """Forget the temporal state; the next frame is a first frame reported with ``reason``.
@@ -173,9 +170,9 @@ class Localizer:
         with torch.inference_mode():
             out, state = self._step_fn(x.to(self.device), self._state, K.to(self.device), None if d is None else d.to(self.device))
             outputs = (out.xyz, out.quat, out.rel_xyz, out.rel_quat, out.seg_logits)
-            finite = all(bool(torch.isfinite(v).all()) for v in outputs)
+            finite = all(bool(torch.isfinite(v).all()) for v in outputs if v is not None)
             if finite:
-                ids = out.seg_logits[0].argmax(0).to(torch.uint8).cpu().numpy()
+                ids = None if out.seg_logits is None else out.seg_logits[0].argmax(0).to(torch.uint8).cpu().numpy()
                 xyz, quat, rel_xyz, rel_quat = (v[0].double().cpu().numpy() for v in outputs[:4])
         if not finite:
             self.reset("nan_output")
@@ -197,7 +194,9 @@ class Localizer:
             rel_t, rel_q = _IDENTITY_T.copy(), _IDENTITY_Q.copy()
             linear, angular = np.zeros(3), np.zeros(3)
             twist_var = np.full(6, UNKNOWN_VARIANCE)
-        mask = cv2.resize(ids, (shape[1], shape[0]), interpolation=cv2.INTER_NEAREST_EXACT) if ids.shape != shape else ids
+        mask = ids
+        if ids is not None and ids.shape != shape:
+            mask = cv2.resize(ids, (shape[1], shape[0]), interpolation=cv2.INTER_NEAREST_EXACT)
         return LocalizerResult(
             stamp=stamp, t=xyz, q=q, rel_t=rel_t, rel_q=rel_q, odom_t=self._odom_t.copy(), odom_q=self._odom_q.copy(),
             linear=linear, angular=angular, dt=dt,

@@ -3,7 +3,8 @@
 :class:`OnnxStep` runs the graph written by :mod:`vlocnetpp_core.onnx_export` behind the same call
 as ``VLocNetPP.step(image, state, K, depth) -> (StepOutput, StreamState)``, so the Localizer's
 code path is the same for both backends (only the heads the Localizer reads are filled; ``taps``
-stay empty). Tensors cross the boundary without copies (``numpy()`` / ``from_numpy`` on CPU).
+stay empty; ``seg_logits`` stays None for the graph of a pose-only model, which has no such output).
+Tensors cross the boundary without copies (``numpy()`` / ``from_numpy`` on CPU).
 
 Which file (:func:`onnx_step_for`): ``NAME.onnx`` next to the checkpoint ``NAME.safetensors`` when
 it was exported from these weights (its ``weights_id`` metadata matches the sidecar's), else a
@@ -12,8 +13,8 @@ graph exported once into the cache folder ``$VLOCNETPP_CACHE`` (default
 the next start. A stale ``NAME.onnx`` (exported from other weights) is never used.
 
 Session settings: graph optimisations all on (ONNX Runtime folds the batch norms into the
-convolutions and fuses activations), ``intra_op_num_threads`` = ``num_threads`` (0: ONNX
-Runtime's default, one per physical core), and idle worker threads sleep instead of spinning
+convolutions and fuses activations), ``intra_op_num_threads`` = ``num_threads`` (0: all cores but
+one, as everywhere: :mod:`vlocnetpp_core.threads`), and idle worker threads sleep instead of spinning
 (``session.intra_op.allow_spinning = 0``): in the node the CPU is shared with DDS and the camera
 driver, and on a loaded machine spinning threads slow every step several times (see
 docs/performance.md). ``device`` ``cuda``/``cuda:N`` uses the CUDA execution provider, which needs
@@ -31,7 +32,8 @@ import torch
 
 from vlocnetpp_core.errors import DataError, UserError, require
 from vlocnetpp_core.model import StepOutput, StreamState
-from vlocnetpp_core.onnx_export import HEAD_OUTPUTS, export_step, read_metadata
+from vlocnetpp_core.onnx_export import export_step, read_metadata
+from vlocnetpp_core.threads import resolve_threads
 
 
 def cache_dir() -> Path:
@@ -44,7 +46,7 @@ def cache_dir() -> Path:
 class OnnxStep:
     """One ONNX Runtime session of an exported streaming step; call it like ``VLocNetPP.step``."""
 
-    def __init__(self, path: str | Path, device: str | torch.device = "cpu", num_threads: int | None = None):
+    def __init__(self, path: str | Path, device: str | torch.device = "cpu", num_threads: int = 0):
         ort = require("onnxruntime", "backend 'onnx'")
 
         self.path = Path(path)
@@ -53,7 +55,7 @@ class OnnxStep:
         self.state_names: list[str] = json.loads(meta["state_names"])
         options = ort.SessionOptions()
         options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-        options.intra_op_num_threads = int(num_threads or 0)
+        options.intra_op_num_threads = resolve_threads(num_threads)
         options.add_session_config_entry("session.intra_op.allow_spinning", "0")
         try:
             self.session = ort.InferenceSession(str(self.path), options, providers=_providers(torch.device(device)))
@@ -62,9 +64,11 @@ class OnnxStep:
         except Exception as err:  # onnxruntime's own exception types
             raise DataError(self.path, f"ONNX Runtime cannot load it: {err}") from None
         inputs = {i.name: i for i in self.session.get_inputs()}
+        self.head_outputs = [o.name for o in self.session.get_outputs() if not o.name.startswith("next_")]
         self._zeros = {n: np.zeros(inputs[f"state_{n}"].shape, np.float32) for n in self.state_names}
-        self._no_depth = np.zeros(inputs["depth"].shape, np.float32)
         self.input_size = (int(inputs["image"].shape[3]), int(inputs["image"].shape[2]))  # (W, H)
+        self._no_depth = np.zeros((1, 1, self.input_size[1], self.input_size[0]), np.float32)
+        self._inputs = set(inputs)  # the exporter drops inputs the graph never reads: depth, use_depth without a depth head
 
     def __call__(self, image: torch.Tensor, state: StreamState | None = None, K: torch.Tensor | None = None,
                  depth: torch.Tensor | None = None) -> tuple[StepOutput, StreamState]:
@@ -80,9 +84,11 @@ class OnnxStep:
         }
         for name in self.state_names:
             feed[f"state_{name}"] = self._zeros[name] if state is None else _array(getattr(state, name))
+        feed = {k: v for k, v in feed.items() if k in self._inputs}
         results = [torch.from_numpy(r) for r in self.session.run(None, feed)]
-        heads = dict(zip(HEAD_OUTPUTS, results[: len(HEAD_OUTPUTS)], strict=True))
-        new = StreamState(**dict(zip(self.state_names, results[len(HEAD_OUTPUTS):], strict=True)))
+        n = len(self.head_outputs)
+        heads = dict(zip(self.head_outputs, results[:n], strict=True))
+        new = StreamState(**dict(zip(self.state_names, results[n:], strict=True)))
         return StepOutput(**heads), new
 
 
@@ -103,7 +109,7 @@ def _providers(device: torch.device) -> list:
     raise UserError(f"backend 'onnx' supports devices cpu and cuda, not {str(device)!r}")
 
 
-def onnx_step_for(model: torch.nn.Module, meta: dict, device: str | torch.device = "cpu", num_threads: int | None = None,
+def onnx_step_for(model: torch.nn.Module, meta: dict, device: str | torch.device = "cpu", num_threads: int = 0,
                   next_to: str | Path | None = None) -> OnnxStep:
     """The :class:`OnnxStep` of a loaded checkpoint: ``next_to`` (``NAME.onnx``) when it matches these
     weights, else the cached export (made now when missing; see module doc)."""

@@ -14,8 +14,13 @@ inputs                       shape                        meaning
 ``state_<name>``             see :class:`StreamState`     previous frame's features (zeros when ``first``)
 ============================ ============================ =============================================
 
+A model without a depth head (``warping`` off, or a pose-only model) never reads ``depth`` and
+``use_depth``, and the exporter leaves them out of its graph; :class:`~vlocnetpp_core.onnx_backend.OnnxStep`
+feeds only the inputs a graph has.
+
 Outputs: ``xyz (1, 3)``, ``quat (1, 4)``, ``rel_xyz (1, 3)``, ``rel_quat (1, 4)``, ``seg_logits
-(1, C, H, W)`` and ``next_<name>`` (the state to feed to the next step). ``<name>`` are the
+(1, C, H, W)`` (not in the graph of a pose-only model: :func:`head_outputs`) and ``next_<name>``
+(the state to feed to the next step). ``<name>`` are the
 :class:`StreamState` fields the config produces (``res5a``, ``odo_res4``, ``sem_res4f``, ``sem_res5c``
 for the shipped configs), listed in the ``state_names`` metadata entry.
 
@@ -54,6 +59,11 @@ OPSET = 17
 HEAD_OUTPUTS = ("xyz", "quat", "rel_xyz", "rel_quat", "seg_logits")
 
 
+def head_outputs(model: nn.Module) -> list[str]:
+    """The :data:`HEAD_OUTPUTS` a step of ``model`` fills: no ``seg_logits`` without the semantic stream."""
+    return [k for k in HEAD_OUTPUTS if k != "seg_logits" or model.config.semantic_stream]
+
+
 def state_names(model: nn.Module) -> list[str]:
     """The :class:`StreamState` fields a step of ``model`` fills (depends on the config's ablation switches)."""
     from vlocnetpp_core.model import StreamState
@@ -70,6 +80,7 @@ class StreamingStepGraph(nn.Module):
         super().__init__()
         self.model = model
         self.state_names = state_names(model)
+        self.head_outputs = head_outputs(model)
 
     def forward(self, image: torch.Tensor, K: torch.Tensor, depth: torch.Tensor, use_depth: torch.Tensor, first: torch.Tensor,
                 *state: torch.Tensor) -> tuple[torch.Tensor, ...]:
@@ -77,7 +88,7 @@ class StreamingStepGraph(nn.Module):
 
         with _first_frame_selection(self.model, first, depth, use_depth):
             out, new = self.model.step(image, StreamState(**dict(zip(self.state_names, state, strict=True))), K)
-        return tuple(getattr(out, k) for k in HEAD_OUTPUTS) + tuple(getattr(new, k) for k in self.state_names)
+        return tuple(getattr(out, k) for k in self.head_outputs) + tuple(getattr(new, k) for k in self.state_names)
 
 
 @contextlib.contextmanager
@@ -94,7 +105,8 @@ def _first_frame_selection(model: nn.Module, first: torch.Tensor, depth: torch.T
         return hook
 
     handles = [model.odometry.register_forward_pre_hook(own_as_previous(0, 1))]  # OdometryStream(prev_res4, res4)
-    for awf in (model.global_stream.temporal_fusion, model.semantic.warp_fusion_res4f, model.semantic.warp_fusion_res5c):
+    warp_awfs = () if model.semantic is None else (model.semantic.warp_fusion_res4f, model.semantic.warp_fusion_res5c)
+    for awf in (model.global_stream.temporal_fusion, *warp_awfs):
         if awf is not None:  # AWF(current, previous)
             handles.append(awf.register_forward_pre_hook(own_as_previous(1, 0)))
     if model.depth_head is not None:
@@ -129,7 +141,7 @@ def export_step(model: nn.Module, out: str | Path, weights_id: str | None = None
     inputs = example_inputs(model, input_size)
     W, H = inputs[0].shape[-1], inputs[0].shape[-2]
     names_in = ["image", "K", "depth", "use_depth", "first"] + [f"state_{n}" for n in graph.state_names]
-    names_out = list(HEAD_OUTPUTS) + [f"next_{n}" for n in graph.state_names]
+    names_out = graph.head_outputs + [f"next_{n}" for n in graph.state_names]
     out.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent)
     os.close(fd)

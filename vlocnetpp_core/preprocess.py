@@ -1,6 +1,6 @@
 """Camera frames in, network tensors out: decoding raw buffers by encoding, depth units, resizing.
 
-Shared by the ROS node (``vlocnetpp_ros``), bag replay and the offline tools, so every path
+Shared by the ROS node, bag replay and the offline tools, so every path
 turns the same bytes into the same tensor. No ROS types here: a raw image is its ``data``
 buffer plus ``width``, ``height``, ``step`` (bytes per row, may include padding), ``encoding``
 and ``is_bigendian``, as in ``sensor_msgs/Image``.
@@ -212,7 +212,8 @@ def depth_to_metres(depth: np.ndarray, encoding: str) -> np.ndarray:
 
 
 def resize_image(rgb: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    """``rgb (H, W, 3) uint8`` resized to ``size = (W', H')`` (area averaging when shrinking)."""
+    """``rgb (H, W, 3) uint8`` resized to ``size = (W', H')``: area averaging when either side shrinks, else
+    bilinear. The one image resize of the package: training transforms, evaluation and the node all use it."""
     w, h = size
     if rgb.shape[1] == w and rgb.shape[0] == h:
         return rgb
@@ -220,12 +221,14 @@ def resize_image(rgb: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     return cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR)
 
 
-def resize_depth(depth: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    """``depth (H, W) float32`` resized to ``size = (W', H')`` with exact nearest neighbour."""
+def resize_nearest(array: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """``(H, W)`` depth (float32 metres) or labels (uint8) resized to ``size = (W', H')`` with exact,
+    pixel-centre aligned nearest neighbour (source pixel ``floor((x + 0.5) * W / W')``): values are never
+    blended, so invalid depth stays invalid and labels stay labels."""
     w, h = size
-    if depth.shape[1] == w and depth.shape[0] == h:
-        return depth
-    return cv2.resize(depth, (w, h), interpolation=cv2.INTER_NEAREST_EXACT)
+    if array.shape[1] == w and array.shape[0] == h:
+        return array
+    return cv2.resize(array, (w, h), interpolation=cv2.INTER_NEAREST_EXACT)
 
 
 def image_tensor(rgb: np.ndarray) -> torch.Tensor:
@@ -250,5 +253,5 @@ def network_input(rgb: np.ndarray, size: tuple[int, int], intrinsics: Intrinsics
         raise FrameError("depth_size", f"depth image is {depth.shape[1]}x{depth.shape[0]} but the colour image is {rgb.shape[1]}x{rgb.shape[0]}")
     image = image_tensor(resize_image(rgb, size))
     K = torch.from_numpy(intrinsics.resized(*size).matrix()).float()[None]
-    d = None if depth is None else torch.from_numpy(np.ascontiguousarray(resize_depth(depth, size)))[None, None]
+    d = None if depth is None else torch.from_numpy(np.ascontiguousarray(resize_nearest(depth, size)))[None, None]
     return image, K, d

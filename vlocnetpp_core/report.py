@@ -4,7 +4,9 @@ A report is the dict of :func:`vlocnetpp_core.metrics.evaluate_sequences` (``ove
 ``per_sequence``, each with ``pose``, ``odometry``, ``segmentation``, ``timing``) plus ``meta``
 and, when a retrieval reference was given, ``baseline``: the same pose metrics for the
 nearest-neighbour retrieval baseline (:mod:`vlocnetpp_core.retrieval`) on the same frames, and
-whether the network beats it (``network_beats_baseline``: translation and rotation medians).
+whether the network beats it (``network_beats_baseline``: translation and rotation medians). A
+report of a model without segmentation (pose-only) has no ``segmentation`` entries but a
+``segmentation_note`` saying why (:func:`without_segmentation`); its table has no segmentation columns.
 """
 
 from __future__ import annotations
@@ -98,6 +100,15 @@ def sample_positions(n: int, k: int) -> set[int]:
     return set(np.linspace(0, n - 1, k).round().astype(int).tolist()) if n > 0 and k > 0 else set()
 
 
+def without_segmentation(report: dict, note: str) -> dict:
+    """Remove the ``segmentation`` entries of a report (overall and per sequence) of a model that has none,
+    and say why in ``report["segmentation_note"]`` (printed under the table)."""
+    for part in (report["overall"], *report["per_sequence"].values()):
+        part.pop("segmentation", None)
+    report["segmentation_note"] = note
+    return report
+
+
 # --------------------------------------------------------------------------- baseline
 
 
@@ -159,13 +170,15 @@ def _num(v: float | None, fmt: str) -> str:
 
 
 def format_report(report: dict, frames: dict[str, int] | None = None) -> str:
-    """A readable table: per sequence and overall median errors, pose accuracies, odometry errors, mIoU, ms/frame;
-    the retrieval baseline's overall row under it when the report has one."""
+    """A readable table: per sequence and overall median errors, pose accuracies, odometry errors, mIoU, ms/frame
+    (no segmentation columns when the report has no ``segmentation``, e.g. a pose-only model's); the retrieval
+    baseline's overall row under it when the report has one."""
     overall = report["overall"]
+    has_seg = "segmentation" in overall
     acc_keys = [k for k in overall["pose"] if k.startswith("accuracy_")]
     headers = ["sequence", "frames", "median t [m]", "median R [deg]"]
     headers += [k.removeprefix("accuracy_").replace("_", "/") + " [%]" for k in acc_keys]
-    headers += ["VO t [%]", "VO R [deg/m]", "mIoU [%]", "pix acc [%]", "ms/frame"]
+    headers += ["VO t [%]", "VO R [deg/m]", *(["mIoU [%]", "pix acc [%]"] if has_seg else []), "ms/frame"]
     frames = frames or {}
     empty = {"odometry": {"translation_error_percent": None, "rotation_error_deg_per_m": None},
              "segmentation": {"miou": None, "pixel_accuracy": None}, "timing": {"mean_ms": None}}
@@ -181,8 +194,7 @@ def format_report(report: dict, frames: dict[str, int] | None = None) -> str:
             *[_pct(pose.get(k)) for k in acc_keys],
             _num(odo["translation_error_percent"], ".2f"),
             _num(odo["rotation_error_deg_per_m"], ".3f"),
-            _pct(seg["miou"]),
-            _pct(seg["pixel_accuracy"]),
+            *([_pct(seg["miou"]), _pct(seg["pixel_accuracy"])] if has_seg else []),
             _num(tim["mean_ms"], ".1f"),
         ]
 
@@ -202,9 +214,11 @@ def format_report(report: dict, frames: dict[str, int] | None = None) -> str:
         lines.append(verdict)
     lengths = overall["odometry"]["lengths_m"]
     lines.append(f"odometry segment lengths [m]: {', '.join(f'{v:g}' for v in lengths) if lengths else '- (sequences too short)'}")
-    iou = {k: v for k, v in overall["segmentation"]["iou"].items() if v is not None}
+    iou = {k: v for k, v in overall["segmentation"]["iou"].items() if v is not None} if has_seg else {}
     if iou:
         lines.append("IoU [%] (overall): " + ", ".join(f"{k} {100 * v:.1f}" for k, v in iou.items()))
+    if report.get("segmentation_note"):
+        lines.append(f"segmentation: {report['segmentation_note']}")
     tim = overall["timing"]
     if tim["median_ms"] is not None:
         lines.append(f"time per frame: mean {tim['mean_ms']:.1f} ms, median {tim['median_ms']:.1f} ms")

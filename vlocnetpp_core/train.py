@@ -5,7 +5,8 @@ geometric consistency loss), ``stl-vo`` (odometry streams), ``stl-seg`` (semanti
 warping, plus the depth head that warping needs; the warp uses the ground-truth relative pose
 because the odometry stream is not trained in this stage), and ``mtl`` (everything, learned task
 weighting of Eq. 6, initialised from the single-task checkpoints at the lower learning rate).
-Adam(0.9, 0.999, 1e-10), lr 1e-3 for single-task stages and 1e-4 for MTL, batch 32 by default.
+A pose-only config (``semantic_stream: false``, e.g. ``lite_pose``) trains ``stl-loc``, ``stl-vo``
+and ``mtl`` (= ``loc`` + ``vo``) and refuses ``stl-seg``. Adam(0.9, 0.999, 1e-10), lr 1e-3 for single-task stages and 1e-4 for MTL, batch 32 by default.
 
 Every step unrolls clips of ``--clip-len`` frames through ``model.forward_clip``, so the
 previous-frame features the network fuses come from its own previous step (never from ground
@@ -28,6 +29,7 @@ and ``recipe`` (``--recipe``) runs a whole schedule.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 
 import torch
@@ -74,7 +76,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--val-every", type=int, default=500, help="validate (and write best/last) every N steps (default 500)")
     p.add_argument("--save-every-s", type=float, default=300.0, help="write last checkpoint + resumable state at most this often (s)")
     p.add_argument("--workers", type=int, default=2, help="data loading worker processes (default 2)")
-    p.add_argument("--threads", type=int, default=0, help="torch CPU threads (default: torch's choice)")
+    p.add_argument("--threads", type=int, default=os.cpu_count() or 1,
+                   help="CPU threads for the network (default: all %(default)s cores; 0: all but one)")
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu", help="cpu or cuda (default: cuda if present)")
     p.add_argument("--seed", type=int, default=0, help="random seed (data order, augmentation, init)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar (log lines only)")
@@ -101,8 +104,13 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"{', '.join(missing)} required (or --recipe FILE)")
     if args.epochs is not None and args.epochs <= 0:
         raise UserError(f"--epochs must be > 0, got {args.epochs:g} (--steps 0 assembles mtl from its stages without training)")
+    from vlocnetpp_core.model import load_model_config, stage_tasks
     from vlocnetpp_core.trainer import Trainer
 
+    try:
+        stage_tasks(args.stage, load_model_config(args.config).tasks)  # before the run folder is made
+    except ValueError as err:
+        raise UserError(f"--config {args.config}: {err}") from None
     Trainer(args).run()
     return 0
 

@@ -7,8 +7,6 @@ import math
 
 import torch
 
-from vlocnetpp_core.model.stages import STAGE_TASKS
-
 
 class EpochSampler(torch.utils.data.Sampler):
     """Yields ``(clip index, sample seed)`` in a per-epoch permutation, this rank's share only.
@@ -46,17 +44,29 @@ def _sample_seed(*parts: int) -> int:
     return int.from_bytes(hashlib.blake2b(repr(parts).encode(), digest_size=8).digest(), "little") >> 2
 
 
-def training_clips(index, clip_len: int, transform, strides: tuple[int, ...] = (1,), stage: str = "mtl") -> torch.utils.data.ConcatDataset:
+def training_clips(index, clip_len: int, transform, strides: tuple[int, ...] = (1,), seg: bool = True,
+                   cache_size: tuple[int, int] | None = None, log=print) -> torch.utils.data.ConcatDataset:
     """The ``ClipDataset`` of ``index`` at each frame stride, pooled (item ``i`` as in ``ClipDataset``);
-    depth and labels are decoded only for the stages that train on them (those with ``seg``).
+    depth and labels are decoded only when the run trains segmentation (``seg``).
 
     Stride ``s`` shows the network every ``s``-th frame: ``s`` times the motion between the frames
     it fuses, as from a faster robot or a slower camera. Odometry trained at one stride learns the
     training speed rather than the motion (docs/training.md).
+
+    ``cache_size (W, H)``: decode every frame once into a :class:`FrameCache` at that size (the
+    largest the transform resizes to) when it takes at most ``MAX_MEMORY_SHARE`` of the available
+    memory; otherwise (or with None) frames are decoded per clip.
     """
     from vlocnetpp_core.data import ClipDataset
+    from vlocnetpp_core.data.frame_cache import MAX_MEMORY_SHARE, FrameCache, available_memory, cache_bytes
 
-    seg = "seg" in STAGE_TASKS[stage]
+    if cache_size is not None:
+        need, free = cache_bytes(len(index), cache_size, seg and index.has_depth, seg and index.has_labels), available_memory()
+        if need <= MAX_MEMORY_SHARE * free:
+            log(f"decoding {len(index)} training frames into memory at {cache_size[0]}x{cache_size[1]} ({need / 2**20:.0f} MiB)")
+            index = FrameCache(index, cache_size, depth=seg, labels=seg)
+        else:
+            log(f"training frames decoded per clip: caching them would take {need / 2**30:.1f} GiB of {free / 2**30:.1f} GiB available")
     return torch.utils.data.ConcatDataset([ClipDataset(index, clip_len, transform, stride=s, depth=seg, labels=seg) for s in strides])
 
 

@@ -24,7 +24,8 @@ import torch.distributed as dist
 from vlocnetpp_core.errors import UserError
 from vlocnetpp_core.losses import selection_score
 from vlocnetpp_core.model.assembly import builds_semantic_fusion, frozen_trunk, init_rule, init_tensors
-from vlocnetpp_core.model.stages import STAGE_TASKS
+from vlocnetpp_core.model.stages import stage_tasks
+from vlocnetpp_core.threads import use_threads
 from vlocnetpp_core.train_data import EpochSampler, SeededClips, split_validation, training_clips
 
 DEFAULT_LR = {"stl-loc": 1e-3, "stl-vo": 1e-3, "stl-seg": 1e-3, "mtl": 1e-4}
@@ -62,8 +63,7 @@ class Trainer:
                 self.device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
                 torch.cuda.set_device(self.device)
             dist.init_process_group("nccl" if self.device.type == "cuda" else "gloo")
-        if args.threads:
-            torch.set_num_threads(args.threads)
+        use_threads(args.threads)
         if args.batch_size % self.world:
             raise UserError(f"--batch-size {args.batch_size} must be divisible by the number of processes ({self.world})")
         self.is_main = self.rank == 0
@@ -84,6 +84,7 @@ class Trainer:
             self.log(f"{args.stage}{' with no steps' if args.stage == 'mtl' else ''}: the network is built without the Res4c "
                      "semantic fusion, which only mtl training learns")
         self.config, self.size = config, tuple(config.input_size)
+        self.tasks = stage_tasks(args.stage, config.tasks)  # mtl without the semantic stream: loc + vo (train.run refuses stl-seg)
         self.train_index = open_dataset(args.data, args.format, "train", args.intrinsics)
         if args.val_data:
             self.val_index = open_dataset(args.val_data, args.format, args.val_split, args.intrinsics)
@@ -93,10 +94,11 @@ class Trainer:
         if not (math.isfinite(self.crop_scale) and self.crop_scale >= 1.0):
             raise UserError(f"--crop-scale must be >= 1, got {self.crop_scale}")
         transform = make_transform(True, self.size, scale=(1.0, self.crop_scale))
-        self.train_clips = training_clips(self.train_index, args.clip_len, transform, args.frame_strides, args.stage)
+        cache_size = (round(self.size[0] * self.crop_scale), round(self.size[1] * self.crop_scale))
+        seg = "seg" in self.tasks  # depth and labels are decoded only for a run that trains segmentation
+        self.train_clips = training_clips(self.train_index, args.clip_len, transform, args.frame_strides, seg, cache_size, self.log)
         if len(self.train_clips) == 0:
             raise UserError(f"{args.data}: no training clips of {args.clip_len} frames")
-        seg = "seg" in STAGE_TASKS[args.stage]
         self.val_clips = None
         if self.val_index is not None:
             self.val_clips = ClipDataset(self.val_index, args.clip_len, make_transform(False, self.size), depth=seg, labels=seg)
@@ -114,7 +116,7 @@ class Trainer:
         positions = np.array([r.t for r in self.train_index.records])
         model.set_position_prior(positions.mean(axis=0), np.maximum(positions.std(axis=0), 1.0))
         model.to(self.device)
-        self.criterion = VLocNetLoss(args.stage, depth=self.config.warping, s_q_init=args.s_q_init).to(self.device)
+        self.criterion = VLocNetLoss(self.tasks, depth=self.config.warping, s_q_init=args.s_q_init).to(self.device)
         self.sources = load_inits(model, self.criterion, args.init, args.stage, self.log) if args.init else []
         if args.init_backbone:
             from vlocnetpp_core.model import load_backbone_weights
@@ -332,13 +334,15 @@ def identity_fusion_init(model, margin: float = 8.0) -> None:
 
 
 def forward_stage(net, batch: dict, stage: str):
-    """Unroll the clip. ``stl-seg`` warps with the ground-truth relative pose (its odometry stream is untrained)."""
+    """Unroll the clip (the stage's tasks that the network has). ``stl-seg`` warps with the ground-truth relative pose
+    (its odometry stream is untrained)."""
     from vlocnetpp_core import geometry
 
     warp = None
     if stage == "stl-seg":
         warp = geometry.pose_to_matrix(batch["rel_t"], batch["rel_q"])
-    return net(batch["image"], batch["K"], warp_rel_pose=warp, tasks=STAGE_TASKS[stage])  # forward = forward_clip
+    tasks = stage_tasks(stage, getattr(net, "module", net).config.tasks)  # module: inside DistributedDataParallel
+    return net(batch["image"], batch["K"], warp_rel_pose=warp, tasks=tasks)  # forward = forward_clip
 
 
 @torch.no_grad()

@@ -11,11 +11,12 @@ from __future__ import annotations
 
 import numpy as np
 from builtin_interfaces.msg import Time
-from geometry_msgs.msg import Pose, PoseStamped
+from geometry_msgs.msg import Pose, PoseStamped, PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import Header
 
+from vlocnetpp_core import geometry
 from vlocnetpp_core.intrinsics import Intrinsics
 from vlocnetpp_core.localizer import LocalizerResult
 from vlocnetpp_core.preprocess import (
@@ -116,25 +117,32 @@ def pose_msg(t: np.ndarray, q: np.ndarray) -> Pose:
     """``geometry_msgs/Pose`` of ``t (3,)`` metres and core ``q (4,) (w, x, y, z)``."""
     p = Pose()
     p.position.x, p.position.y, p.position.z = (float(v) for v in t)
-    p.orientation.w, p.orientation.x, p.orientation.y, p.orientation.z = (float(v) for v in q)
+    p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w = (float(v) for v in geometry.quat_to_ros(np.asarray(q)))
     return p
 
 
 def pose_from_msg(pose: Pose) -> tuple[np.ndarray, np.ndarray]:
     """``(t (3,), q (4,) (w, x, y, z), w >= 0)`` of a ``geometry_msgs/Pose``."""
     o = pose.orientation
-    q = np.array([o.w, o.x, o.y, o.z], dtype=np.float64)
-    q /= np.linalg.norm(q)
-    return np.array([pose.position.x, pose.position.y, pose.position.z]), (-q if q[0] < 0 else q)
+    q = geometry.quat_normalize(geometry.quat_from_ros(np.array([o.x, o.y, o.z, o.w], dtype=np.float64)))
+    return np.array([pose.position.x, pose.position.y, pose.position.z]), q
 
 
 def pose_stamped(result: LocalizerResult, header: Header) -> PoseStamped:
-    """Global pose ``T_map,cam`` of a result."""
+    """Global pose ``T_map,cam`` of a result (``T_map,base`` once :func:`vlocnetpp_core.extrinsics.to_base_frame` moved it)."""
     return PoseStamped(header=header, pose=pose_msg(result.t, result.q))
 
 
+def pose_with_covariance(result: LocalizerResult, header: Header) -> PoseWithCovarianceStamped:
+    """The global pose of :func:`pose_stamped` with ``result.pose_covariance`` (6x6, ROS order x, y, z, rot x, y, z; row-major)."""
+    msg = PoseWithCovarianceStamped(header=header)
+    msg.pose.pose = pose_msg(result.t, result.q)
+    msg.pose.covariance = np.asarray(result.pose_covariance, dtype=np.float64).reshape(36)
+    return msg
+
+
 def odometry(result: LocalizerResult, header: Header, child_frame_id: str) -> Odometry:
-    """``nav_msgs/Odometry``: accumulated pose in ``header.frame_id``, twist in the child (camera) frame, covariances."""
+    """``nav_msgs/Odometry``: accumulated pose in ``header.frame_id``, twist in the child frame (camera or base), covariances."""
     msg = Odometry(header=header, child_frame_id=child_frame_id)
     msg.pose.pose = pose_msg(result.odom_t, result.odom_q)
     msg.pose.covariance = np.asarray(result.odom_covariance, dtype=np.float64).reshape(36)

@@ -35,7 +35,8 @@ from sensor_msgs.msg import Image
 from std_msgs.msg import Header
 
 from vlocnetpp_core.errors import UserError
-from vlocnetpp_core.localizer import BACKENDS, Localizer, inference_threads
+from vlocnetpp_core.localizer import BACKENDS, Localizer
+from vlocnetpp_core.threads import use_threads
 from vlocnetpp_ros import conversions
 from vlocnetpp_ros.dds_client import RELIABLE as _QOS
 from vlocnetpp_ros.dds_client import DdsClient
@@ -103,7 +104,7 @@ def measure(checkpoint: str, frames: np.ndarray, repetitions: int, warmup: int, 
     namespace = f"/vlocnetpp_latency_{os.getpid()}"
     start = time.perf_counter()
     argv = localizer_command() + node_arguments(namespace, checkpoint, False, False, 1.0, device)
-    num_threads = inference_threads(num_threads)  # the node resolves 0 the same way: both sides run alike
+    num_threads = use_threads(num_threads)  # the node resolves 0 the same way: both sides run alike
     argv += ["-p", f"backend:={backend}", "-p", f"num_threads:={num_threads}"]
     probe = _Probe(namespace)
     node = _NodeProcess(argv)

@@ -5,11 +5,16 @@ Subscribes to a camera (``sensor_msgs/Image`` rgb8 / bgr8 / rgba8 / bgra8 / mono
 aligned depth image (32FC1 metres or 16UC1 millimetres, matched to the colour image by stamp)
 and ``CameraInfo``, and publishes for every processed frame, with the input stamp:
 
-* ``vlocnet/pose`` (``PoseStamped`` in ``map_frame``): global camera pose;
+* ``vlocnet/pose`` (``PoseStamped`` in ``map_frame``): global camera pose, or with ``base_frame``
+  set the pose of ``base_frame`` (``T_map,base = T_map,camera camera_extrinsics^{-1}``,
+  :mod:`vlocnetpp_core.extrinsics`);
+* ``vlocnet/pose_with_covariance`` (``PoseWithCovarianceStamped``, same stamp, frame and pose): with
+  the calibrated 6x6 covariance (robot_localization's input);
 * ``vlocnet/odometry`` (``Odometry`` in ``odom_frame``, child ``base_frame`` or the image's
   frame): pose accumulated from the odometry stream, twist = relative motion / dt, covariances
-  from the checkpoint calibration;
-* ``vlocnet/segmentation`` (``Image`` mono8, the input's frame): class id per pixel;
+  from the checkpoint calibration; of the base when ``base_frame`` is set;
+* ``vlocnet/segmentation`` (``Image`` mono8, the input's frame): class id per pixel; advertised
+  only with ``publish_segmentation`` and a model that has a semantic stream;
 * ``/diagnostics`` (1 Hz): rates, latency, dropped, rejected by reason, resets by reason.
 
 All numbers come from :class:`vlocnetpp_core.localizer.Localizer`; this node only converts
@@ -42,7 +47,7 @@ from pathlib import Path
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import PoseStamped
+from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.event_handler import SubscriptionEventCallbacks
@@ -53,10 +58,13 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import Header
 
+from vlocnetpp_core.bag import topics
 from vlocnetpp_core.checkpoint import SHIPPED_MODEL, shipped_checkpoint
 from vlocnetpp_core.errors import UserError
-from vlocnetpp_core.localizer import BACKENDS, Localizer, inference_threads
+from vlocnetpp_core.extrinsics import IDENTITY_VALUES, CameraExtrinsics, to_base_frame
+from vlocnetpp_core.localizer import BACKENDS, Localizer
 from vlocnetpp_core.preprocess import FrameError
+from vlocnetpp_core.threads import use_threads
 from vlocnetpp_ros import conversions
 from vlocnetpp_ros.diagnostics import NodeStats, ThrottledLog
 from vlocnetpp_ros.mailbox import LatestMailbox
@@ -74,14 +82,17 @@ DEPTH_WAIT_S = 0.05  # how long a colour frame waits for its depth image (in the
 # name -> (default, description); every one is in config/localizer.yaml.
 PARAMETERS: dict[str, tuple[object, str]] = {
     "checkpoint": ("", f"checkpoint NAME.safetensors (NAME.json next to it); empty: the shipped share/{PACKAGE}/{SHIPPED_MODEL}"),
-    "image_topic": ("/camera/image_raw", "sensor_msgs/Image topic (with use_compressed: <image_topic>/compressed)"),
+    "image_topic": (topics.IMAGE_TOPIC, "sensor_msgs/Image topic (with use_compressed: <image_topic>/compressed)"),
     "depth_topic": ("", "aligned depth Image (32FC1 metres or 16UC1 mm, same stamp and size as the colour image); empty: predicted depth"),
     "camera_info_topic": ("", "sensor_msgs/CameraInfo topic of the camera; empty: the checkpoint's default intrinsics"),
     "use_compressed": (False, "subscribe to sensor_msgs/CompressedImage (PNG/JPEG) on <image_topic>/compressed"),
-    "map_frame": ("map", "frame_id of the published global pose"),
-    "odom_frame": ("odom", "frame_id of the published odometry"),
-    "base_frame": ("", "child_frame_id of the odometry (the camera's pose is published, no TF applied); empty: the image's frame_id"),
-    "max_gap_s": (1.0, "reset the temporal state when consecutive processed frames are further apart than this (seconds)"),
+    "map_frame": (topics.MAP_FRAME, "frame_id of the published global pose"),
+    "odom_frame": (topics.ODOM_FRAME, "frame_id of the published odometry"),
+    "base_frame": ("", "frame whose pose is published (vlocnet/pose, pose_with_covariance, odometry child_frame_id), placed by "
+                   "camera_extrinsics (no TF lookup); empty: the camera's pose, odometry child = the image's frame_id"),
+    "camera_extrinsics": (list(IDENTITY_VALUES), "the camera's pose in base_frame, T_base_camera: x y z (m) qw qx qy qz (unit quaternion); "
+                          "camera = the images' optical frame (x right, y down, z forward); must be identity when base_frame is empty"),
+    "max_gap_s": (topics.DEFAULT_MAX_GAP_S, "reset the temporal state when consecutive processed frames are further apart than this (seconds)"),
     "publish_segmentation": (True, "publish the class-id mask on vlocnet/segmentation"),
     "device": ("cpu", "torch device: cpu or cuda (cuda:N)"),
     "num_threads": (0, "CPU inference threads (torch or ONNX Runtime); 0: all cores but one, at least 1"),
@@ -111,18 +122,33 @@ def _check_parameters(p: dict) -> None:
         raise UserError("parameter image_topic is empty")
 
 
+def _extrinsics(p: dict) -> CameraExtrinsics | None:
+    """``camera_extrinsics`` checked (:class:`UserError`); None when the published pose is the camera's: without
+    ``base_frame``, or with identity extrinsics (then the base frame is only a name)."""
+    ext = CameraExtrinsics.from_values(p["camera_extrinsics"])
+    if p["base_frame"]:
+        return None if ext.is_identity else ext
+    if not ext.is_identity:
+        raise UserError(f"parameter camera_extrinsics is {ext.values()} but base_frame is empty: set base_frame to the frame "
+                        "the extrinsics place the camera in, or leave camera_extrinsics at identity [0, 0, 0, 1, 0, 0, 0]")
+    return None
+
+
 class LocalizerNode(Node):
     """The node; raises :class:`UserError` at construction when the checkpoint cannot be used."""
 
     def __init__(self, **kwargs):
         super().__init__("localizer", **kwargs)
         for name, (default, description) in PARAMETERS.items():
-            self.declare_parameter(name, default, ParameterDescriptor(description=description, read_only=True))
+            # camera_extrinsics: any type, checked below, so that [0, 0, 0, 1, 0, 0, 0] (integers) is accepted too
+            self.declare_parameter(name, default, ParameterDescriptor(description=description, read_only=True,
+                                                                      dynamic_typing=name == "camera_extrinsics"))
         p = {name: self.get_parameter(name).value for name in PARAMETERS}
         self.params = p
         _check_parameters(p)
+        self.extrinsics = _extrinsics(p)
         checkpoint = Path(p["checkpoint"]) if p["checkpoint"] else default_checkpoint()
-        self.localizer = Localizer.from_checkpoint(checkpoint, device=p["device"], max_gap_s=p["max_gap_s"], num_threads=inference_threads(p["num_threads"]),
+        self.localizer = Localizer.from_checkpoint(checkpoint, device=p["device"], max_gap_s=p["max_gap_s"], num_threads=use_threads(p["num_threads"]),
                                                    backend=p["backend"])
         w, h = self.localizer.input_size
         self.stats = NodeStats(info={"checkpoint": str(checkpoint), "device": str(p["device"]), "backend": p["backend"], "input_size": f"{w}x{h}"})
@@ -135,10 +161,16 @@ class LocalizerNode(Node):
         self._depths: deque[tuple[tuple[int, int], Image | None]] = deque(maxlen=DEPTH_MATCH_FRAMES)
         self._depth_arrived = threading.Condition()
 
-        self.pose_pub = self.create_publisher(PoseStamped, "vlocnet/pose", 10)
-        self.odom_pub = self.create_publisher(Odometry, "vlocnet/odometry", 10)
-        self.seg_pub = self.create_publisher(Image, "vlocnet/segmentation", 10) if p["publish_segmentation"] else None
-        self.diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        # outputs in the node's namespace (topics.py names them as in the root namespace)
+        self.pose_pub = self.create_publisher(PoseStamped, topics.POSE_TOPIC.lstrip("/"), 10)
+        self.pose_cov_pub = self.create_publisher(PoseWithCovarianceStamped, topics.POSE_WITH_COVARIANCE_TOPIC.lstrip("/"), 10)
+        self.odom_pub = self.create_publisher(Odometry, topics.ODOMETRY_TOPIC.lstrip("/"), 10)
+        self.seg_pub = None  # advertised only when there is something to publish
+        if p["publish_segmentation"] and self.localizer.has_segmentation:
+            self.seg_pub = self.create_publisher(Image, topics.SEGMENTATION_TOPIC.lstrip("/"), 10)
+        elif p["publish_segmentation"]:
+            self.get_logger().info("the model has no semantic stream: vlocnet/segmentation is not advertised")
+        self.diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS_TOPIC, 10)
         image_topic = p["image_topic"].rstrip("/") + "/compressed" if p["use_compressed"] else p["image_topic"]
         self._inputs = {image_topic: (CompressedImage if p["use_compressed"] else Image, self._on_image)}
         if p["depth_topic"]:
@@ -156,7 +188,10 @@ class LocalizerNode(Node):
         self._stop = threading.Event()
         self._worker = threading.Thread(target=self._work, name="vlocnetpp-inference", daemon=True)
         self._worker.start()
-        self.get_logger().info(f"localizer ready: {checkpoint} on {p['device']} ({p['backend']}, network input {w}x{h}), camera {image_topic}")
+        extrinsics = (self.extrinsics or CameraExtrinsics.identity()).values()
+        pose_of = f"{p['base_frame']} (camera_extrinsics {extrinsics})" if p["base_frame"] else "the camera"
+        self.get_logger().info(f"localizer ready: {checkpoint} on {p['device']} ({p['backend']}, network input {w}x{h}), camera {image_topic}, "
+                               f"publishing the pose of {pose_of}")
 
     # ------------------------------------------------------------------ subscriptions
 
@@ -245,7 +280,11 @@ class LocalizerNode(Node):
         if result.reset_reason not in (None, "start"):
             self.note(f"reset.{result.reset_reason}", f"temporal state reset ({result.reset_reason}) at stamp {stamp:.3f}")
         frame = msg.header.frame_id
-        self.pose_pub.publish(conversions.pose_stamped(result, Header(stamp=msg.header.stamp, frame_id=self.params["map_frame"])))
+        if self.extrinsics is not None:
+            result = to_base_frame(result, self.extrinsics)
+        pose_header = Header(stamp=msg.header.stamp, frame_id=self.params["map_frame"])
+        self.pose_pub.publish(conversions.pose_stamped(result, pose_header))
+        self.pose_cov_pub.publish(conversions.pose_with_covariance(result, pose_header))
         self.odom_pub.publish(conversions.odometry(result, Header(stamp=msg.header.stamp, frame_id=self.params["odom_frame"]),
                                                    self.params["base_frame"] or frame))
         if self.seg_pub is not None:

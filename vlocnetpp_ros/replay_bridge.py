@@ -6,8 +6,10 @@ install tree, else ``python -m vlocnetpp_ros.node``) runs as a subprocess in a p
 mixed in. This bridge publishes the bag's camera images (raw or compressed), ``CameraInfo`` and,
 with ``use_depth``, depth to it as the stored CDR bytes (no re-encoding), and writes the output
 bag as :func:`vlocnetpp_core.bag.replay.replay` does: the input topics plus what the node
-published on ``vlocnet/pose``, ``vlocnet/odometry`` and ``vlocnet/segmentation`` (renamed to
-``/vlocnet/*``), logged at the log time of the image they answer.
+published on ``vlocnet/pose``, ``vlocnet/pose_with_covariance``, ``vlocnet/odometry`` and ``vlocnet/segmentation`` (renamed to
+``/vlocnet/*``), logged at the log time of the image they answer. The topics it waits for are derived
+from the checkpoint (:func:`vlocnetpp_core.bag.replay.checkpoint_output_types`): a pose-only model's
+node advertises no segmentation, so none is expected (a frame is answered by its three pose topics).
 
 Pacing: at the bag's rate (image stamps mapped onto the wall clock; the node drops frames when
 it is slower, as live), at a fixed ``rate_hz``, or with ``rate_hz = inf`` ("max") in lockstep:
@@ -29,20 +31,27 @@ from collections import Counter, deque
 from contextlib import ExitStack
 from pathlib import Path
 
-from geometry_msgs.msg import PoseStamped
+from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
-from vlocnetpp_core.bag import messages
+from vlocnetpp_core.bag import messages, topics
 from vlocnetpp_core.bag.bagfile import BagReader, BagWriter, sigterm_as_interrupt
-from vlocnetpp_core.bag.convert import CAMERA_INFO_TOPIC, DEPTH_TOPIC
-from vlocnetpp_core.bag.replay import OUTPUT_TOPICS, ReplaySummary, choose_image_topic, copy_topics, groups_by_log_time
+from vlocnetpp_core.bag.replay import (
+    OUTPUT_TYPES,
+    ReplaySummary,
+    checkpoint_output_types,
+    choose_image_topic,
+    copy_topics,
+    groups_by_log_time,
+)
 from vlocnetpp_core.errors import DataError, UserError
 from vlocnetpp_ros.dds_client import RECORD as _RECORD
 from vlocnetpp_ros.dds_client import RELIABLE as _RELIABLE
 from vlocnetpp_ros.dds_client import DdsClient
 
-_OUTPUT_TYPES = {"/vlocnet/pose": PoseStamped, "/vlocnet/odometry": Odometry, "/vlocnet/segmentation": Image}
+_OUTPUT_TYPES = {topics.POSE_TOPIC: PoseStamped, topics.POSE_WITH_COVARIANCE_TOPIC: PoseWithCovarianceStamped,
+                 topics.ODOMETRY_TOPIC: Odometry, topics.SEGMENTATION_TOPIC: Image}
 CAMERA_INFO_SETTLE_S = 0.5
 
 
@@ -117,7 +126,8 @@ class _NodeProcess:
 class _Bridge(DdsClient):
     """The rclpy side: publishers to the node, raw subscriptions to its outputs, spun from the caller's thread."""
 
-    def __init__(self, namespace: str, compressed: bool, use_depth: bool):
+    def __init__(self, namespace: str, compressed: bool, use_depth: bool, outputs: dict[str, str]):
+        """``outputs``: the ``/vlocnet/*`` topics the node publishes for this checkpoint (``checkpoint_output_types``)."""
         super().__init__("vlocnetpp_replay_bridge", namespace)
         image_type = CompressedImage if compressed else Image
         self.image_pub = self.node.create_publisher(image_type, f"{namespace}/camera/image" + ("/compressed" if compressed else ""), _RELIABLE)
@@ -126,7 +136,7 @@ class _Bridge(DdsClient):
         self.received: deque[tuple[str, bytes]] = deque()
         self.subs = [
             self.node.create_subscription(msg_type, f"{namespace}{topic}", lambda data, topic=topic: self.received.append((topic, data)), _RECORD, raw=True)
-            for topic, msg_type in _OUTPUT_TYPES.items()
+            for topic, msg_type in _OUTPUT_TYPES.items() if topic in outputs
         ]
 
     def connected(self) -> bool:
@@ -148,19 +158,17 @@ def replay_through_node(bag: str | Path, out: str | Path, checkpoint: str | Path
     """
     from tqdm import tqdm
 
-    from vlocnetpp_core.checkpoint import read_checkpoint_meta
-
     summary = ReplaySummary(Path(out))
     namespace = f"/vlocnetpp_replay_{os.getpid()}"
     start = time.perf_counter()
-    read_checkpoint_meta(checkpoint)  # a clear error now rather than a node that fails to start
+    outputs = checkpoint_output_types(checkpoint)  # a clear error now rather than a node that fails to start
     with sigterm_as_interrupt(), BagReader(bag) as reader, ExitStack() as stack:
         topic = choose_image_topic(reader.topics, image_topic, reader.path)
         compressed = reader.topics[topic] == messages.COMPRESSED_IMAGE
-        if use_depth and DEPTH_TOPIC not in reader.topics:
-            raise DataError(reader.path, f"--use-depth: the bag has no {DEPTH_TOPIC} topic")
+        if use_depth and topics.DEPTH_TOPIC not in reader.topics:
+            raise DataError(reader.path, f"--use-depth: the bag has no {topics.DEPTH_TOPIC} topic")
         writer = BagWriter(out, force=force)  # refuses an existing output before the node starts
-        bridge = _Bridge(namespace, compressed, use_depth)
+        bridge = _Bridge(namespace, compressed, use_depth, outputs)
         stack.callback(bridge.close)
         node = _NodeProcess(localizer_command() + node_arguments(namespace, checkpoint, compressed, use_depth, max_gap_s, device))
         stack.callback(node.stop)
@@ -172,8 +180,8 @@ def replay_through_node(bag: str | Path, out: str | Path, checkpoint: str | Path
                 raise UserError(f"the localizer node did not connect within {startup_timeout_s:.0f} s:\n{node.tail()}")
         summary.startup_s = time.perf_counter() - start
         with writer:
-            copy_topics(reader, writer)
-            player = _Player(reader, writer, bridge, node, topic, use_depth, summary, bar)
+            copy_topics(reader, writer, outputs)
+            player = _Player(reader, writer, bridge, node, topic, use_depth, summary, bar, len(outputs))
             player.play(rate_hz, answer_timeout_s)
             player.finish(answer_timeout_s, quiet_s)
         summary.wall_s = time.perf_counter() - start - summary.startup_s
@@ -184,8 +192,10 @@ class _Player:
     """Publishes the bag's frames to the node, paced, and writes the inputs and the node's answers."""
 
     def __init__(self, reader: BagReader, writer: BagWriter, bridge: _Bridge, node: _NodeProcess, topic: str, use_depth: bool,
-                 summary: ReplaySummary, bar):
+                 summary: ReplaySummary, bar, n_outputs: int):
+        """``n_outputs``: how many output topics answer one frame."""
         self.reader, self.writer, self.bridge, self.node = reader, writer, bridge, node
+        self.n_outputs = n_outputs
         self.topic, self.use_depth, self.summary, self.bar = topic, use_depth, summary, bar
         self.log_time_of: dict[int, int] = {}  # image stamp -> log time of the image in the bag
         self.answered: Counter = Counter()  # image stamp -> output topics received
@@ -196,38 +206,38 @@ class _Player:
         """Write what the node published since the last call."""
         while self.bridge.received:
             out_topic, data = self.bridge.received.popleft()
-            ns = messages.stamp_ns(messages.deserialize(data, OUTPUT_TOPICS[out_topic]))
+            ns = messages.stamp_ns(messages.deserialize(data, OUTPUT_TYPES[out_topic]))
             self.writer.write_raw(out_topic, self.log_time_of.get(ns, ns), data)
             self.answered[ns] += 1
             self.last_answer = time.monotonic()
-            if self.answered[ns] == len(OUTPUT_TOPICS):
+            if self.answered[ns] == self.n_outputs:
                 self.summary.processed += 1
                 self.bar.update(1)
 
     def _answered(self, stamp: int) -> bool:
         self.record()
-        return self.answered[stamp] >= len(OUTPUT_TOPICS)
+        return self.answered[stamp] >= self.n_outputs
 
     def play(self, rate_hz: float | None, answer_timeout_s: float) -> None:
-        bridge, topics = self.bridge, self.reader.topics
+        bridge, bag_topics = self.bridge, self.reader.topics  # not ``topics``: that is the module of topic names
         first_info = True
         clock_start: tuple[float, int] | None = None  # (monotonic time, stamp ns) of the first image
         for group in groups_by_log_time(self.reader.messages(raw=True)):
             for t, ns, raw in group:
-                if t in OUTPUT_TOPICS:
+                if t in OUTPUT_TYPES:
                     continue
                 self.writer.write_raw(t, ns, raw)
-                if t == CAMERA_INFO_TOPIC:
+                if t == topics.CAMERA_INFO_TOPIC:
                     bridge.info_pub.publish(bytes(raw))
                     if first_info:  # let the node take the intrinsics before the first image
                         first_info = False
                         bridge.spin_until(time.monotonic() + CAMERA_INFO_SETTLE_S)
-                elif t == DEPTH_TOPIC and self.use_depth:
+                elif t == topics.DEPTH_TOPIC and self.use_depth:
                     bridge.depth_pub.publish(bytes(raw))
             for t, ns, raw in group:
                 if t != self.topic:
                     continue
-                stamp = messages.stamp_ns(messages.deserialize(raw, topics[t]))
+                stamp = messages.stamp_ns(messages.deserialize(raw, bag_topics[t]))
                 self.log_time_of[stamp] = ns
                 if clock_start is None:
                     clock_start = (time.monotonic(), stamp)

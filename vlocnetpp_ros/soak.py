@@ -32,6 +32,7 @@ from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import Header
 
+from vlocnetpp_core.bag import topics
 from vlocnetpp_core.checkpoint import shipped_checkpoint
 from vlocnetpp_core.errors import UserError
 from vlocnetpp_core.localizer import BACKENDS
@@ -60,7 +61,7 @@ class _Feeder(DdsClient):
             self.node.create_subscription(PoseStamped, f"{namespace}/vlocnet/pose",
                                           lambda m: self.pose_at.setdefault(conversions.stamp_to_seconds(m.header.stamp), time.monotonic()),
                                           _RECORD),
-            self.node.create_subscription(DiagnosticArray, "/diagnostics", lambda m: self._diagnostics(m, hardware_id), 10),
+            self.node.create_subscription(DiagnosticArray, topics.DIAGNOSTICS_TOPIC, lambda m: self._diagnostics(m, hardware_id), 10),
         ]
 
     def _diagnostics(self, msg: DiagnosticArray, hardware_id: str) -> None:

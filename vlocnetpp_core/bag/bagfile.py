@@ -24,6 +24,7 @@ from contextlib import contextmanager, suppress
 from pathlib import Path
 from typing import Any
 
+from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 
 from vlocnetpp_core.bag import messages
@@ -77,6 +78,10 @@ def remove_stale_temps(path: Path) -> list[Path]:
     return removed
 
 
+_LATCHED_QOS = Qos(QosHistory.KEEP_LAST, 1, QosReliability.RELIABLE, QosDurability.TRANSIENT_LOCAL, QosTime(0, 0), QosTime(0, 0),
+                   QosLiveliness.AUTOMATIC, QosTime(0, 0), False)
+
+
 class BagWriter:
     """Context manager writing a single-file ROS 2 Jazzy MCAP bag at ``path`` (ends in ``.mcap``).
 
@@ -110,14 +115,17 @@ class BagWriter:
             raise
         return self
 
-    def add_topic(self, topic: str, msgtype: str, msgdef: str | None = None, digest: str | None = None) -> None:
+    def add_topic(self, topic: str, msgtype: str, msgdef: str | None = None, digest: str | None = None, latched: bool = False) -> None:
         """Declare ``topic`` of ``msgtype`` (e.g. ``sensor_msgs/msg/Image``). Types outside the Jazzy
-        store need their ``msgdef`` text and RIHS01 ``digest`` (as read from another bag)."""
+        store need their ``msgdef`` text and RIHS01 ``digest`` (as read from another bag). ``latched``:
+        offered as reliable, transient-local, depth 1 (as tf2's static broadcaster does), so that
+        ``ros2 bag play`` republishes it for late subscribers such as tf2's ``/tf_static`` listener."""
         assert self._writer is not None, "use BagWriter as a context manager"
+        qos = [_LATCHED_QOS] if latched else []
         if msgtype in messages.TYPESTORE.types:
-            conn = self._writer.add_connection(topic, msgtype, typestore=messages.TYPESTORE)
+            conn = self._writer.add_connection(topic, msgtype, typestore=messages.TYPESTORE, offered_qos_profiles=qos)
         else:
-            conn = self._writer.add_connection(topic, msgtype, msgdef=msgdef, rihs01=digest)
+            conn = self._writer.add_connection(topic, msgtype, msgdef=msgdef, rihs01=digest, offered_qos_profiles=qos)
         self._connections[topic] = conn
         self.counts[topic] = 0
 

@@ -11,6 +11,13 @@ Topics (every message of a frame has the frame's stamp; image frames are ``camer
 ``/ground_truth/pose``          ``geometry_msgs/PoseStamped`` ``T_wc`` in ``map``
 =============================== =========================== ==========================================
 
+With ``--robot-frame ROBOT --camera-extrinsics X,Y,Z,QW,QX,QY,QZ`` (``T_ROBOT,camera``, the camera's
+pose in the robot frame) the ground truth is written as a robot's bag carries it instead:
+``/tf`` ``map -> ROBOT`` per frame (``T_map,ROBOT = T_map,camera * T_ROBOT,camera^-1``) and one
+``/tf_static`` ``ROBOT -> camera`` message at the first stamp, no ``/ground_truth/pose``; ``vlocnetpp
+extract --tf map ROBOT --camera-extrinsics ...`` reads it back. ``--no-labels`` leaves out
+``/camera/semantic``.
+
 Stamps: the frames of a sequence are ``1 / --rate`` apart (default 20 Hz DeepLoc, 30 Hz 7-Scenes)
 starting at 0 s, and each sequence starts :data:`vlocnetpp_core.data.sample.SEQUENCE_GAP_S` (10 s) after the previous one
 ends, longer than the node's ``max_gap_s``, so a replay resets the temporal state between loops.
@@ -36,6 +43,9 @@ from contextlib import closing
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
+from vlocnetpp_core import geometry
 from vlocnetpp_core.bag import messages
 from vlocnetpp_core.bag.bagfile import BagWriter, sigterm_as_interrupt
 from vlocnetpp_core.bag.topics import (
@@ -46,6 +56,8 @@ from vlocnetpp_core.bag.topics import (
     IMAGE_TOPIC,
     MAP_FRAME,
     SEMANTIC_TOPIC,
+    TF_STATIC_TOPIC,
+    TF_TOPIC,
 )
 from vlocnetpp_core.data.sample import DatasetIndex, Frame, sequence_stamps
 from vlocnetpp_core.errors import DataError, UserError
@@ -119,10 +131,13 @@ def prefetched(frames: Iterable[tuple[DatasetIndex, int]], ahead: int = PREFETCH
 
 
 def convert(indexes: list[DatasetIndex], out: str | Path, compress: str | None = None, rate_hz: float | None = None,
-            force: bool = False, progress: bool = True) -> ConvertSummary:
+            force: bool = False, progress: bool = True, robot_frame: str | None = None,
+            camera_extrinsics: tuple[np.ndarray, np.ndarray] | None = None, labels: bool = True) -> ConvertSummary:
     """Write the records of ``indexes`` (one or more splits, in order) as the bag ``out`` (see module doc).
 
     ``compress``: None (raw ``rgb8``), ``"png"`` or ``"jpeg"``. ``rate_hz``: None for the format's rate.
+    ``robot_frame`` with ``camera_extrinsics`` ``(t (3,), q (4,) w,x,y,z)`` = ``T_robot,camera``: ground truth
+    on ``/tf`` + ``/tf_static`` instead of ``/ground_truth/pose``. ``labels=False``: no ``/camera/semantic``.
     """
     from tqdm import tqdm
 
@@ -145,9 +160,12 @@ def convert(indexes: list[DatasetIndex], out: str | Path, compress: str | None =
         writer.add_topic(image_topic, messages.IMAGE if compress is None else messages.COMPRESSED_IMAGE)
         if any(index.has_depth for index in indexes):
             writer.add_topic(DEPTH_TOPIC, messages.IMAGE)
-        if any(index.has_labels for index in indexes):
+        if labels and any(index.has_labels for index in indexes):
             writer.add_topic(SEMANTIC_TOPIC, messages.IMAGE)
-        writer.add_topic(GROUND_TRUTH_TOPIC, messages.POSE_STAMPED)
+        if robot_frame is None:
+            writer.add_topic(GROUND_TRUTH_TOPIC, messages.POSE_STAMPED)
+        else:
+            _write_tf_static(writer, messages.seconds_to_ns(stamps[0]) if stamps else 0, robot_frame, camera_extrinsics)
         for frame, stamp in zip(loaded, stamps, strict=True):
             ns = messages.seconds_to_ns(stamp)
             writer.write(CAMERA_INFO_TOPIC, ns, messages.camera_info(ns, CAMERA_FRAME, frame.intrinsics))
@@ -157,15 +175,30 @@ def convert(indexes: list[DatasetIndex], out: str | Path, compress: str | None =
                 writer.write(image_topic, ns, messages.compressed_image(ns, CAMERA_FRAME, frame.image, compress))
             if frame.depth is not None:
                 writer.write(DEPTH_TOPIC, ns, messages.image(ns, CAMERA_FRAME, frame.depth, "32FC1"))
-            if frame.labels is not None:
+            if labels and frame.labels is not None:
                 writer.write(SEMANTIC_TOPIC, ns, messages.image(ns, CAMERA_FRAME, frame.labels, "mono8"))
-            writer.write(GROUND_TRUTH_TOPIC, ns, messages.pose_stamped(ns, MAP_FRAME, frame.t, frame.q))
+            if robot_frame is None:
+                writer.write(GROUND_TRUTH_TOPIC, ns, messages.pose_stamped(ns, MAP_FRAME, frame.t, frame.q))
+            else:
+                t_base, q_base = geometry.pose_compose(frame.t, frame.q, *geometry.pose_inverse(*camera_extrinsics))
+                writer.write(TF_TOPIC, ns, messages.tf_message([messages.transform_stamped(ns, MAP_FRAME, robot_frame, t_base, q_base)]))
             del frame
             bar.update(1)
     return ConvertSummary(
         path=Path(out), frames=len(frames), topics=dict(writer.counts), size_bytes=Path(out).stat().st_size,
         duration_s=(stamps[-1] - stamps[0]) if stamps else 0.0, wall_s=time.perf_counter() - start,
     )
+
+
+def _write_tf_static(writer: BagWriter, ns: int, robot_frame: str, camera_extrinsics: tuple[np.ndarray, np.ndarray] | None) -> None:
+    """Declare ``/tf`` and ``/tf_static`` and write the one ``robot_frame -> camera`` static transform at ``ns``."""
+    if camera_extrinsics is None:
+        raise UserError("--robot-frame needs --camera-extrinsics X,Y,Z,QW,QX,QY,QZ (the camera's pose in the robot frame)")
+    if robot_frame in (MAP_FRAME, CAMERA_FRAME):
+        raise UserError(f"--robot-frame must differ from {MAP_FRAME!r} and {CAMERA_FRAME!r}, got {robot_frame!r}")
+    writer.add_topic(TF_TOPIC, messages.TF_MESSAGE)
+    writer.add_topic(TF_STATIC_TOPIC, messages.TF_MESSAGE, latched=True)
+    writer.write(TF_STATIC_TOPIC, ns, messages.tf_message([messages.transform_stamped(ns, robot_frame, CAMERA_FRAME, *camera_extrinsics)]))
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -177,6 +210,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="write /camera/image_raw/compressed (PNG, or JPEG quality 95) instead of raw rgb8 /camera/image_raw")
     p.add_argument("--rate", type=float, default=None, metavar="HZ", help="frame rate of the stamps (default 20 Hz DeepLoc, 30 Hz 7-Scenes)")
     p.add_argument("--intrinsics", default=None, metavar="FX,FY,CX,CY", help="camera intrinsics at the dataset image size (default: the reader's)")
+    p.add_argument("--robot-frame", metavar="ROBOT", help="write the ground truth as /tf map -> ROBOT plus /tf_static ROBOT -> camera "
+                   "(needs --camera-extrinsics) instead of /ground_truth/pose")
+    p.add_argument("--camera-extrinsics", metavar="X,Y,Z,QW,QX,QY,QZ", help="with --robot-frame: the camera's pose in ROBOT (T_robot,camera)")
+    p.add_argument("--no-labels", action="store_true", help="leave out /camera/semantic")
     p.add_argument("--skip-missing", action="store_true", help="leave out poses whose image is missing instead of stopping")
     p.add_argument("--force", action="store_true", help="replace OUT.mcap if it exists")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -201,6 +238,14 @@ def run(args: argparse.Namespace) -> int:
             print(f"note: {note}", file=sys.stderr)
         if not args.skip_missing:
             check_listed_images(index)
-    summary = convert(indexes, args.out, args.compress, args.rate, args.force, progress=not args.no_progress)
+    extrinsics = None
+    if (args.robot_frame is None) != (args.camera_extrinsics is None):
+        raise UserError("--robot-frame ROBOT and --camera-extrinsics X,Y,Z,QW,QX,QY,QZ go together")
+    if args.camera_extrinsics is not None:
+        from vlocnetpp_core.bag.extract import parse_extrinsics
+
+        extrinsics = parse_extrinsics(args.camera_extrinsics)
+    summary = convert(indexes, args.out, args.compress, args.rate, args.force, progress=not args.no_progress,
+                      robot_frame=args.robot_frame, camera_extrinsics=extrinsics, labels=not args.no_labels)
     print(summary.format())
     return 0

@@ -2,7 +2,10 @@
 
 Frames are matched by ``header.stamp``: a frame is scored when the bag has a ground-truth pose
 (``/ground_truth/pose``, or ``--ground-truth-topic``: ``PoseStamped``, ``PoseWithCovarianceStamped``
-or ``Odometry``) and a ``/vlocnet/pose`` with the same stamp. The matched frames are split into
+or ``Odometry``) and a ``/vlocnet/pose`` with the same stamp. A robot's bag has its ground truth
+as TF instead: ``--tf PARENT CHILD`` (with ``--camera-extrinsics`` when CHILD is the robot, not the
+camera) takes it from ``/tf`` and ``/tf_static`` as ``extract`` does, interpolated to the stamps of
+``/vlocnet/pose`` (a frame further than ``--max-pose-gap`` from a TF sample is not scored). The matched frames are split into
 sequences where consecutive stamps are more than ``--max-gap-s`` apart (default 1 s, the node's
 ``max_gap_s`` after which it resets its temporal state; the converter leaves 10 s between
 sequences) and named
@@ -12,7 +15,9 @@ sequences) and named
 * odometry: the relative poses ``T_{k-1}^{-1} T_k`` between consecutive ``/vlocnet/odometry``
   poses (the localizer's accumulated odometry), chained from the true first pose as ``evaluate`` does;
 * segmentation: ``/vlocnet/segmentation`` (``mono8`` class ids) against ``/camera/semantic`` when both
-  exist, at the image resolution (as the node publishes masks and ``evaluate`` scores them).
+  exist, at the image resolution (as the node publishes masks and ``evaluate`` scores them). A bag
+  without ``/vlocnet/segmentation`` (the replay of a pose-only model) gets no segmentation entries
+  or columns, as ``evaluate`` of that model.
 
 :func:`vlocnetpp_core.metrics.evaluate_sequences` computes the report, so the numbers equal
 ``vlocnetpp evaluate`` on the same frames (timing is not in a bag: it is reported as ``-``).
@@ -31,6 +36,7 @@ import numpy as np
 
 from vlocnetpp_core.bag import messages
 from vlocnetpp_core.bag.bagfile import BagReader
+from vlocnetpp_core.bag.pose_source import TfCollector
 from vlocnetpp_core.bag.topics import (
     DEFAULT_MAX_GAP_S,
     GROUND_TRUTH_TOPIC,
@@ -39,15 +45,19 @@ from vlocnetpp_core.bag.topics import (
     POSE_TOPIC,
     SEGMENTATION_TOPIC,
     SEMANTIC_TOPIC,
+    TF_STATIC_TOPIC,
+    TF_TOPIC,
 )
 from vlocnetpp_core.classes import CLASS_NAMES
 from vlocnetpp_core.errors import DataError, UserError
+from vlocnetpp_core.extrinsics import CameraExtrinsics
 from vlocnetpp_core.metrics import SequenceResult, confusion_matrix, evaluate_sequences
 from vlocnetpp_core.report import (
     add_baseline,
     add_report_arguments,
     check_report_args,
     format_report,
+    without_segmentation,
     write_outputs,
 )
 from vlocnetpp_core.trajectory import matrix_to_quat, pose_matrices
@@ -70,6 +80,21 @@ class MatchedFrames:
     sequences: list[range]
 
 
+@dataclass(frozen=True)
+class GroundTruth:
+    """Where the true camera poses are: a pose ``topic``, or the TF chain ``tf = (PARENT, CHILD)`` composed with
+    ``extrinsics = (t, q)`` ``T_CHILD,camera`` and interpolated to the frames' stamps (``max_pose_gap_s``)."""
+
+    topic: str = GROUND_TRUTH_TOPIC
+    tf: tuple[str, str] | None = None
+    extrinsics: tuple[np.ndarray, np.ndarray] | None = None
+    max_pose_gap_s: float = 0.5
+
+    @property
+    def topics(self) -> list[str]:
+        return [TF_TOPIC, TF_STATIC_TOPIC] if self.tf is not None else [self.topic]
+
+
 def _pose_of(msg) -> tuple[np.ndarray, np.ndarray]:
     pose = msg.pose.pose if hasattr(msg.pose, "pose") else msg.pose  # Odometry / PoseWithCovarianceStamped / PoseStamped
     return messages.pose_from_msg(pose)
@@ -84,18 +109,24 @@ def split_on_gaps(stamps_ns: np.ndarray, max_gap_s: float) -> list[range]:
     return [range(a, b) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
 
 
-def read_matched_frames(reader: BagReader, ground_truth_topic: str = GROUND_TRUTH_TOPIC, max_gap_s: float = DEFAULT_MAX_GAP_S) -> MatchedFrames:
+def read_matched_frames(reader: BagReader, ground_truth: GroundTruth = GroundTruth(), max_gap_s: float = DEFAULT_MAX_GAP_S) -> MatchedFrames:
     """Pass 1: the poses of every frame with ground truth and ``/vlocnet/pose`` (see module doc)."""
-    for topic in (ground_truth_topic, POSE_TOPIC):
+    for topic in (ground_truth.topics[0], POSE_TOPIC):
         if topic not in reader.topics:
             raise DataError(reader.path, f"no {topic} topic (topics: {', '.join(sorted(reader.topics)) or 'none'})")
-    poses: dict[str, dict[int, tuple[np.ndarray, np.ndarray]]] = {ground_truth_topic: {}, POSE_TOPIC: {}, ODOMETRY_TOPIC: {}}
-    for topic, _, msg in reader.messages(poses):
-        poses[topic][messages.stamp_ns(msg)] = _pose_of(msg)
-    gt, pred, odom = poses[ground_truth_topic], poses[POSE_TOPIC], poses[ODOMETRY_TOPIC]
+    poses: dict[str, dict[int, tuple[np.ndarray, np.ndarray]]] = {POSE_TOPIC: {}, ODOMETRY_TOPIC: {}, ground_truth.topic: {}}
+    tf = TfCollector()
+    for topic, _, msg in reader.messages([*poses, *ground_truth.topics]):
+        if ground_truth.tf is not None and topic in (TF_TOPIC, TF_STATIC_TOPIC):
+            tf.add(msg, static=topic == TF_STATIC_TOPIC)
+        elif topic in poses:
+            poses[topic][messages.stamp_ns(msg)] = _pose_of(msg)
+    pred, odom = poses[POSE_TOPIC], poses[ODOMETRY_TOPIC]
+    gt = poses[ground_truth.topic] if ground_truth.tf is None else _tf_poses_at(tf, ground_truth, sorted(pred))
     stamps = np.array(sorted(gt.keys() & pred.keys()), dtype=np.int64)
     if len(stamps) == 0:
-        raise DataError(reader.path, f"no {POSE_TOPIC} message has the stamp of a {ground_truth_topic} message")
+        raise DataError(reader.path, f"no {POSE_TOPIC} message has the stamp of a ground-truth pose "
+                                     f"({ground_truth.topic if ground_truth.tf is None else 'TF ' + ' -> '.join(ground_truth.tf)})")
     nan_pose = (np.full(3, np.nan), np.full(4, np.nan))
 
     def column(source, part, width):
@@ -103,6 +134,14 @@ def read_matched_frames(reader: BagReader, ground_truth_topic: str = GROUND_TRUT
 
     return MatchedFrames(stamps, column(gt, 0, 3), column(gt, 1, 4), column(pred, 0, 3), column(pred, 1, 4),
                          column(odom, 0, 3), column(odom, 1, 4), split_on_gaps(stamps, max_gap_s))
+
+
+def _tf_poses_at(tf: TfCollector, ground_truth: GroundTruth, stamps: list[int]) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """The camera's true pose at each of ``stamps`` (ns) where the TF chain has one (see :class:`GroundTruth`)."""
+    if not stamps:
+        return {}
+    t, q, reasons = tf.chain(*ground_truth.tf).camera_at(np.array(stamps, dtype=np.int64), ground_truth.max_pose_gap_s, ground_truth.extrinsics)
+    return {s: (t[k], q[k]) for k, s in enumerate(stamps) if reasons[k] is None}
 
 
 def relative_odometry(odom_t: np.ndarray, odom_q: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
@@ -186,7 +225,7 @@ def describe_frames(reader: BagReader, where: dict[int, tuple[int, int]]) -> lis
     return out
 
 
-def collect_results(path: str | Path, ground_truth_topic: str = GROUND_TRUTH_TOPIC, max_gap_s: float = DEFAULT_MAX_GAP_S,
+def collect_results(path: str | Path, ground_truth: GroundTruth = GroundTruth(), max_gap_s: float = DEFAULT_MAX_GAP_S,
                     samples: int = 0, num_classes: int = len(CLASS_NAMES),
                     describe: bool = False) -> tuple[list[SequenceResult], list[np.ndarray] | None]:
     """One :class:`SequenceResult` per sequence of the bag at ``path`` (see the module doc); ``samples``
@@ -195,7 +234,7 @@ def collect_results(path: str | Path, ground_truth_topic: str = GROUND_TRUTH_TOP
     from vlocnetpp_core.report import sample_positions, sequence_name
 
     with BagReader(path) as reader:
-        frames = read_matched_frames(reader, ground_truth_topic, max_gap_s)
+        frames = read_matched_frames(reader, ground_truth, max_gap_s)
         where = {s: (k, p) for k, rng in enumerate(frames.sequences) for p, s in enumerate(frames.stamps[rng].tolist())}
         sample_stamps = {int(frames.stamps[rng[p]]) for rng in frames.sequences for p in sample_positions(len(rng), samples)}
         seg = score_segmentation(reader, where, sample_stamps, num_classes)
@@ -214,11 +253,31 @@ def collect_results(path: str | Path, ground_truth_topic: str = GROUND_TRUTH_TOP
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("bag", metavar="BAG", help="bag with ground truth and /vlocnet/* outputs (e.g. written by 'vlocnetpp replay')")
-    p.add_argument("--ground-truth-topic", default=GROUND_TRUTH_TOPIC, help=f"ground-truth poses (default {GROUND_TRUTH_TOPIC})")
+    gt = p.add_mutually_exclusive_group()
+    gt.add_argument("--ground-truth-topic", default=GROUND_TRUTH_TOPIC,
+                    help=f"ground-truth camera poses: PoseStamped, PoseWithCovarianceStamped or Odometry (default {GROUND_TRUTH_TOPIC})")
+    gt.add_argument("--tf", nargs=2, metavar=("PARENT", "CHILD"), default=None,
+                    help="ground truth from /tf and /tf_static instead: the pose of CHILD in PARENT (e.g. map base_link), "
+                         "interpolated to the frames' stamps")
+    p.add_argument("--camera-extrinsics", metavar="X,Y,Z,QW,QX,QY,QZ", default=None,
+                   help="with --tf: the camera's pose in CHILD (metres, unit quaternion), when CHILD is the robot and not the camera")
+    p.add_argument("--max-pose-gap", type=float, default=0.5, metavar="S",
+                   help="with --tf: a frame more than S seconds from a TF sample is not scored (default 0.5)")
     p.add_argument("--max-gap-s", type=float, default=DEFAULT_MAX_GAP_S,
                    help=f"a stamp gap longer than this starts a new sequence (default {DEFAULT_MAX_GAP_S:g} s)")
     add_report_arguments(p, "retrieval baseline reference: the training dataset folder of the model (its train split) or a .npz "
                             "from ReferenceSet.save, e.g. models/vlocnetpp_lite.reference.npz (default: no baseline)")
+
+
+def ground_truth_of(args: argparse.Namespace) -> GroundTruth:
+    """The :class:`GroundTruth` of the command line (``--camera-extrinsics`` checked as the node's)."""
+    if args.tf is None and args.camera_extrinsics is not None:
+        raise UserError("--camera-extrinsics applies with --tf PARENT CHILD (a ground-truth topic holds camera poses)")
+    extrinsics = None
+    if args.camera_extrinsics is not None:
+        ext = CameraExtrinsics.from_text(args.camera_extrinsics, "--camera-extrinsics")
+        extrinsics = (ext.t, ext.q)
+    return GroundTruth(args.ground_truth_topic, tuple(args.tf) if args.tf else None, extrinsics, args.max_pose_gap)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -228,9 +287,12 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--max-gap-s must be a positive number of seconds, got {args.max_gap_s}")
     thresholds, lengths = check_report_args(args)
     reference = open_reference(args.reference) if args.reference else None
-    results, descriptors = collect_results(args.bag, args.ground_truth_topic, args.max_gap_s, args.samples if args.plots else 0,
+    results, descriptors = collect_results(args.bag, ground_truth_of(args), args.max_gap_s, args.samples if args.plots else 0,
                                            describe=reference is not None)
     report = evaluate_sequences(results, thresholds, lengths, CLASS_NAMES)
+    with BagReader(args.bag) as reader:
+        if SEGMENTATION_TOPIC not in reader.topics:
+            without_segmentation(report, f"none: the bag has no {SEGMENTATION_TOPIC} (a model without a semantic stream)")
     if reference is not None:
         add_baseline(report, results, descriptors, reference, thresholds)
     report["meta"] = {"bag": str(args.bag)}

@@ -4,7 +4,7 @@ The types come from ``rosbags.typesys`` (``Stores.ROS2_JAZZY``), so the definiti
 a bag are the real Jazzy ones. Conventions (DESIGN section 3): stamps are float seconds in core
 and ``builtin_interfaces/Time`` (or integer nanoseconds, the bag's log time) here; quaternions
 are ``(w, x, y, z)`` in core and ``(x, y, z, w)`` in the messages, converted only in this module.
-The rclpy twin of these builders is ``vlocnetpp_ros/conversions.py`` (a different type system).
+The rclpy twin of these builders is the node package's ``conversions`` module (a different type system).
 """
 
 from __future__ import annotations
@@ -27,6 +27,8 @@ COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
 CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
 ODOMETRY = "nav_msgs/msg/Odometry"
+POSE_WITH_COVARIANCE_STAMPED = "geometry_msgs/msg/PoseWithCovarianceStamped"
+TF_MESSAGE = "tf2_msgs/msg/TFMessage"
 
 # Encodings :func:`image` writes: channels and numpy dtype (reading accepts every encoding of
 # ``vlocnetpp_core.preprocess``, the decoder the node uses too).
@@ -152,12 +154,44 @@ def pose_stamped(ns: int, frame_id: str, t: np.ndarray, q_wxyz: np.ndarray) -> A
     return _T[POSE_STAMPED](header=header(ns, frame_id), pose=_pose(t, q_wxyz))
 
 
+def pose_with_covariance_stamped(ns: int, frame_id: str, t: np.ndarray, q_wxyz: np.ndarray, covariance: np.ndarray) -> Any:
+    """``geometry_msgs/PoseWithCovarianceStamped``: :func:`pose_stamped` plus a 6x6 covariance (ROS order, row-major)."""
+    return _T[POSE_WITH_COVARIANCE_STAMPED](header=header(ns, frame_id), pose=_T["geometry_msgs/msg/PoseWithCovariance"](
+        pose=_pose(t, q_wxyz), covariance=np.asarray(covariance, np.float64).reshape(36)))
+
+
 def pose_from_msg(pose: Any) -> tuple[np.ndarray, np.ndarray]:
     """``(t (3,), q (4,) (w, x, y, z), w >= 0)`` of a ``geometry_msgs/Pose``."""
     p, o = pose.position, pose.orientation
     q = quat_from_ros(np.array([o.x, o.y, o.z, o.w], dtype=np.float64))
     q /= np.linalg.norm(q)
     return np.array([p.x, p.y, p.z], dtype=np.float64), (-q if q[0] < 0 else q)
+
+
+def transform_stamped(ns: int, parent: str, child: str, t: np.ndarray, q_wxyz: np.ndarray) -> Any:
+    """``geometry_msgs/TransformStamped`` of ``T_parent,child`` (``t`` metres, ``q`` core order ``(w, x, y, z)``)."""
+    t = np.asarray(t, dtype=np.float64)
+    x, y, z, w = (float(v) for v in quat_to_ros(np.asarray(q_wxyz, dtype=np.float64)))
+    return _T["geometry_msgs/msg/TransformStamped"](
+        header=header(ns, parent), child_frame_id=child,
+        transform=_T["geometry_msgs/msg/Transform"](
+            translation=_T["geometry_msgs/msg/Vector3"](x=float(t[0]), y=float(t[1]), z=float(t[2])),
+            rotation=_T["geometry_msgs/msg/Quaternion"](x=x, y=y, z=z, w=w),
+        ),
+    )
+
+
+def tf_message(transforms: list[Any]) -> Any:
+    """``tf2_msgs/TFMessage`` (what ``/tf`` and ``/tf_static`` carry) of ``transform_stamped`` messages."""
+    return _T[TF_MESSAGE](transforms=list(transforms))
+
+
+def transform_from_msg(transform: Any) -> tuple[np.ndarray, np.ndarray]:
+    """``(t (3,), q (4,) (w, x, y, z), w >= 0)`` of a ``geometry_msgs/Transform``."""
+    v, o = transform.translation, transform.rotation
+    q = quat_from_ros(np.array([o.x, o.y, o.z, o.w], dtype=np.float64))
+    q /= np.linalg.norm(q)
+    return np.array([v.x, v.y, v.z], dtype=np.float64), (-q if q[0] < 0 else q)
 
 
 def odometry(ns: int, frame_id: str, child_frame_id: str, t: np.ndarray, q_wxyz: np.ndarray,

@@ -4,9 +4,13 @@ The output bag holds every input topic unchanged plus, per processed image (stam
 
 ===================== ========================= ==============================================
 ``/vlocnet/pose``         ``geometry_msgs/PoseStamped`` global pose ``T_map,cam`` in ``map``
+``/vlocnet/pose_with_covariance`` ``geometry_msgs/PoseWithCovarianceStamped`` the same pose with its 6x6 covariance
 ``/vlocnet/odometry``     ``nav_msgs/Odometry``         accumulated odometry in ``odom``, child = the image frame
 ``/vlocnet/segmentation`` ``sensor_msgs/Image``         ``mono8`` class ids at the image resolution
 ===================== ========================= ==============================================
+
+A pose-only model (no semantic stream, e.g. config ``lite_pose``) gives no segmentation: the output
+bag then has no ``/vlocnet/segmentation`` topic (:func:`output_types`, :func:`checkpoint_output_types`).
 
 In process (default) the images are read in log-time order and given to
 :class:`~vlocnetpp_core.localizer.Localizer` (the node's code path) with the intrinsics of the
@@ -14,7 +18,7 @@ latest ``/camera/camera_info``; the localizer resets its temporal state itself o
 longer than ``--max-gap-s`` (the converter leaves 10 s between sequences). Messages that share a
 log time are handled together, so a frame's camera info or depth is used whatever order the bag
 stores them in. With ``--through-node`` the real ROS node runs as a subprocess and the bag is
-played to it over DDS by ``python -m vlocnetpp_ros.replay_bridge`` (a ROS program of its own: this
+played to it over DDS by the ``replay-node`` program of the ROS package (:mod:`vlocnetpp_core.programs`) (a ROS program of its own: this
 module never imports ROS); both paths give
 the same poses for the same frames.
 
@@ -47,12 +51,32 @@ from vlocnetpp_core.bag.topics import (
     ODOM_FRAME,
     ODOMETRY_TOPIC,
     POSE_TOPIC,
+    POSE_WITH_COVARIANCE_TOPIC,
     SEGMENTATION_TOPIC,
     SEMANTIC_TOPIC,
 )
 from vlocnetpp_core.errors import DataError, UserError
+from vlocnetpp_core.programs import program_command
 
-OUTPUT_TOPICS = {POSE_TOPIC: messages.POSE_STAMPED, ODOMETRY_TOPIC: messages.ODOMETRY, SEGMENTATION_TOPIC: messages.IMAGE}
+OUTPUT_TYPES = {POSE_TOPIC: messages.POSE_STAMPED, POSE_WITH_COVARIANCE_TOPIC: messages.POSE_WITH_COVARIANCE_STAMPED,
+                ODOMETRY_TOPIC: messages.ODOMETRY, SEGMENTATION_TOPIC: messages.IMAGE}
+
+
+def output_types(segmentation: bool = True) -> dict[str, str]:
+    """The ``/vlocnet/*`` topics (and types) written per frame: :data:`OUTPUT_TYPES`, without
+    ``/vlocnet/segmentation`` for a model that has no semantic stream (``segmentation`` False)."""
+    return {t: ty for t, ty in OUTPUT_TYPES.items() if segmentation or t != SEGMENTATION_TOPIC}
+
+
+def checkpoint_output_types(checkpoint: str | Path) -> dict[str, str]:
+    """:func:`output_types` of the model of a checkpoint, from its sidecar (the weights are not read);
+    raises ``DataError`` naming the file when the sidecar is missing or malformed."""
+    from vlocnetpp_core.checkpoint import checkpoint_paths, read_checkpoint_meta
+    from vlocnetpp_core.model import ModelConfig
+
+    meta = read_checkpoint_meta(checkpoint)
+    config = ModelConfig.from_dict(meta["model_config"], source=f"{checkpoint_paths(checkpoint)[1]} (model_config)")
+    return output_types("seg" in config.tasks)
 
 
 @dataclass
@@ -80,7 +104,7 @@ class ReplaySummary:
 
 def choose_image_topic(topics: dict[str, str], wanted: str | None, path: Path) -> str:
     """``wanted``, else ``/camera/image_raw``, else ``/camera/image_raw/compressed``, else the only image topic."""
-    images = [t for t, ty in topics.items() if ty in (messages.IMAGE, messages.COMPRESSED_IMAGE) and t not in OUTPUT_TOPICS]
+    images = [t for t, ty in topics.items() if ty in (messages.IMAGE, messages.COMPRESSED_IMAGE) and t not in OUTPUT_TYPES]
     if wanted is not None:
         if topics.get(wanted) not in (messages.IMAGE, messages.COMPRESSED_IMAGE):
             raise DataError(path, f"--image-topic {wanted}: no Image or CompressedImage topic of that name (image topics: {', '.join(images) or 'none'})")
@@ -107,22 +131,27 @@ def groups_by_log_time(stream: Iterable[tuple[str, int, Any]]) -> Iterator[list[
 
 
 def output_messages(result, image_msg: Any) -> list[tuple[str, Any]]:
-    """The ``/vlocnet/*`` messages of a :class:`~vlocnetpp_core.localizer.LocalizerResult` with the stamp and frame of ``image_msg``."""
+    """The ``/vlocnet/*`` messages of a :class:`~vlocnetpp_core.localizer.LocalizerResult` with the stamp and frame of
+    ``image_msg`` (no segmentation when ``result.mask`` is None: a pose-only model)."""
     ns, camera = messages.stamp_ns(image_msg), image_msg.header.frame_id
-    return [
+    out = [
         (POSE_TOPIC, messages.pose_stamped(ns, MAP_FRAME, result.t, result.q)),
+        (POSE_WITH_COVARIANCE_TOPIC, messages.pose_with_covariance_stamped(ns, MAP_FRAME, result.t, result.q, result.pose_covariance)),
         (ODOMETRY_TOPIC, messages.odometry(ns, ODOM_FRAME, camera, result.odom_t, result.odom_q, result.linear, result.angular,
                                            result.odom_covariance, result.twist_covariance)),
-        (SEGMENTATION_TOPIC, messages.image(ns, camera, result.mask, "mono8")),
     ]
+    if result.mask is not None:
+        out.append((SEGMENTATION_TOPIC, messages.image(ns, camera, result.mask, "mono8")))
+    return out
 
 
-def copy_topics(reader: BagReader, writer: BagWriter) -> None:
-    """Declare every input topic (except old ``/vlocnet/*`` outputs, which the replay replaces) on ``writer``."""
+def copy_topics(reader: BagReader, writer: BagWriter, outputs: dict[str, str] | None = None) -> None:
+    """Declare every input topic (except old ``/vlocnet/*`` outputs, which the replay replaces) and the
+    ``outputs`` (:func:`output_types`; default all of :data:`OUTPUT_TYPES`) on ``writer``."""
     for conn in reader.connections:
-        if conn.topic not in OUTPUT_TOPICS and not writer.has_topic(conn.topic):
+        if conn.topic not in OUTPUT_TYPES and not writer.has_topic(conn.topic):
             writer.add_topic(conn.topic, conn.msgtype, conn.msgdef.data, conn.digest)
-    for topic, msgtype in OUTPUT_TOPICS.items():
+    for topic, msgtype in (OUTPUT_TYPES if outputs is None else outputs).items():
         writer.add_topic(topic, msgtype)
 
 
@@ -145,11 +174,11 @@ def replay(bag: str | Path, out: str | Path, localizer, image_topic: str | None 
         depth_by_stamp: dict[int, Any] = {}
         bar = tqdm(total=reader.count(topic), unit="frame", desc="replay", disable=not progress, file=sys.stderr)
         with sigterm_as_interrupt(), BagWriter(out, force=force) as writer, bar:
-            copy_topics(reader, writer)
+            copy_topics(reader, writer, output_types(localizer.has_segmentation))
             for group in groups_by_log_time(reader.messages(raw=True)):
                 images = []
                 for t, ns, raw in group:
-                    if t in OUTPUT_TOPICS:
+                    if t in OUTPUT_TYPES:
                         continue
                     writer.write_raw(t, ns, raw)
                     if t not in decoded:
@@ -186,7 +215,8 @@ def replay(bag: str | Path, out: str | Path, localizer, image_topic: str | None 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("bag", metavar="BAG", help="input bag (.mcap file, or a rosbag2 folder) with camera images")
     p.add_argument("--checkpoint", required=True, help="checkpoint (NAME.safetensors or NAME; the NAME.json sidecar next to it)")
-    p.add_argument("--out", required=True, metavar="OUT.mcap", help="output bag: the input topics plus /vlocnet/pose, /vlocnet/odometry, /vlocnet/segmentation")
+    p.add_argument("--out", required=True, metavar="OUT.mcap", help="output bag: the input topics plus /vlocnet/pose, /vlocnet/pose_with_covariance, "
+                                                                    "/vlocnet/odometry, /vlocnet/segmentation (not for a pose-only model)")
     p.add_argument("--image-topic", default=None, help="camera topic (default /camera/image_raw, else /camera/image_raw/compressed)")
     p.add_argument("--through-node", action="store_true", help="run the real ROS node (console script 'localizer') and play the bag to it over DDS")
     p.add_argument("--rate", default=None, metavar="HZ|max",
@@ -199,7 +229,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def bridge_argv(args: argparse.Namespace) -> list[str]:
-    """The ``replay`` flags again, for ``python -m vlocnetpp_ros.replay_bridge`` (which takes the same ones)."""
+    """The ``replay`` flags again, for the ``replay-node`` program (which takes the same ones)."""
     argv = [str(args.bag), "--checkpoint", str(args.checkpoint), "--out", str(args.out), "--through-node",
             "--max-gap-s", repr(args.max_gap_s), "--device", args.device]
     for flag, value in (("--image-topic", args.image_topic), ("--rate", args.rate)):
@@ -236,7 +266,7 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"{args.out}: exists already (use --force to replace it)")
     if args.through_node:
         # The DDS side is a ROS program of its own (vlocnetpp_core never imports ROS): same flags.
-        return subprocess.call([sys.executable, "-m", "vlocnetpp_ros.replay_bridge", *bridge_argv(args)])
+        return subprocess.call([*program_command("replay-node"), *bridge_argv(args)])
     else:
         from vlocnetpp_core.localizer import Localizer
 

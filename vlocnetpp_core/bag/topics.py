@@ -15,11 +15,14 @@ DEPTH_TOPIC = "/camera/depth/image_raw"
 CAMERA_INFO_TOPIC = "/camera/camera_info"
 SEMANTIC_TOPIC = "/camera/semantic"
 GROUND_TRUTH_TOPIC = "/ground_truth/pose"
+TF_TOPIC = "/tf"  # tf2_msgs/TFMessage; convert --robot-frame writes map -> robot here
+TF_STATIC_TOPIC = "/tf_static"  # ... and robot -> camera here, once
 
 POSE_TOPIC = "/vlocnet/pose"
+POSE_WITH_COVARIANCE_TOPIC = "/vlocnet/pose_with_covariance"  # the same pose with its 6x6 covariance (robot_localization's input)
 ODOMETRY_TOPIC = "/vlocnet/odometry"
 SEGMENTATION_TOPIC = "/vlocnet/segmentation"
-OUTPUT_TOPICS = (POSE_TOPIC, ODOMETRY_TOPIC, SEGMENTATION_TOPIC)
+OUTPUT_TOPICS = (POSE_TOPIC, POSE_WITH_COVARIANCE_TOPIC, ODOMETRY_TOPIC, SEGMENTATION_TOPIC)
 DIAGNOSTICS_TOPIC = "/diagnostics"
 
 MAP_FRAME = "map"

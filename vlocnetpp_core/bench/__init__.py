@@ -38,11 +38,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from vlocnetpp_core.errors import DataError, UserError, require
+from vlocnetpp_core.threads import use_threads
 
 
 @dataclass
 class BenchSettings:
-    """What ``vlocnetpp bench`` runs. Sizes are ``(W, H)``; ``threads`` 0 = the library default."""
+    """What ``vlocnetpp bench`` runs. Sizes are ``(W, H)``; ``threads`` as everywhere (:mod:`vlocnetpp_core.threads`; 0: all cores but one, like the node)."""
 
     repetitions: int = 7
     warmup: int = 2
@@ -53,7 +54,7 @@ class BenchSettings:
     threads: int = 0
     node: bool = True
     node_backend: str = "torch"
-    node_transport: str = "large_data"  # or "environment" (see vlocnetpp_ros.latency_bench)
+    node_transport: str = "large_data"  # or "environment" (see the latency-bench program, docs/performance.md)
     node_repetitions: int = 30
     node_warmup: int = 3
     converter_frames: int = 120
@@ -127,8 +128,7 @@ def run_bench(settings: BenchSettings, device: str = "cpu", quick: bool = False,
     say = progress or (lambda _msg: None)
     if device.startswith("cuda") and not torch.cuda.is_available():
         raise UserError(f"--device {device}: CUDA is not available here")
-    if settings.threads:
-        torch.set_num_threads(settings.threads)
+    use_threads(settings.threads)
     report: dict = {"machine": {"device": device, "cpus": os.cpu_count(), "torch_threads": torch.get_num_threads(),
                                 "torch": torch.__version__, "onnxruntime": _version("onnxruntime"), "load_average_start": figures.cpu_load()},
                     "settings": {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(settings).items()},

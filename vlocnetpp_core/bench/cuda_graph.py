@@ -52,6 +52,8 @@ class CudaGraphStep:
 
 
 def max_abs_difference(a: StepOutput, b: StepOutput) -> float:
-    """Largest absolute difference over the pose, odometry and segmentation heads of two step outputs."""
+    """Largest absolute difference over the pose, odometry and segmentation heads of two step outputs (heads that
+    neither ran, such as the segmentation of a pose-only model, are left out)."""
     return max(float((x - y).abs().max()) for x, y in ((a.xyz, b.xyz), (a.quat, b.quat), (a.rel_xyz, b.rel_xyz),
-                                                        (a.rel_quat, b.rel_quat), (a.seg_logits, b.seg_logits)))
+                                                        (a.rel_quat, b.rel_quat), (a.seg_logits, b.seg_logits))
+               if x is not None or y is not None)

@@ -11,7 +11,6 @@ import dataclasses
 import json
 import os
 import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -22,6 +21,7 @@ import torch
 from vlocnetpp_core.bench.cuda_graph import max_abs_difference
 from vlocnetpp_core.bench.timing import interleaved, median, synchronizer
 from vlocnetpp_core.errors import UserError
+from vlocnetpp_core.programs import program_command
 
 
 def synth_frames(count: int, size: tuple[int, int], scene: str = "campus", seed: int = 0) -> tuple[list[np.ndarray], dict]:
@@ -119,7 +119,7 @@ def _onnx_paper_step(model: torch.nn.Module, path: Path, device: str, threads: i
         start = time.perf_counter()
         graph = export_step(model, path)
         result["paper_onnx_export"] = time.perf_counter() - start
-        return OnnxStep(graph, device, threads or None)
+        return OnnxStep(graph, device, threads)
     except UserError as err:
         result["onnx_error"] = str(err)
     return None
@@ -184,13 +184,13 @@ def lite_step(checkpoint: Path, frames: list[np.ndarray], device: str, threads: 
     from vlocnetpp_core.localizer import Localizer
     from vlocnetpp_core.onnx_export import export_checkpoint
 
-    localizers = {"torch": Localizer.from_checkpoint(checkpoint, device=device, num_threads=threads or None)}
+    localizers = {"torch": Localizer.from_checkpoint(checkpoint, device=device, num_threads=threads)}
     result: dict = {"lite_step_onnx": None}
     try:
         start = time.perf_counter()
         export_checkpoint(checkpoint, checkpoint.with_suffix(".onnx"))
         result["onnx_export"] = time.perf_counter() - start
-        localizers["onnx"] = Localizer.from_checkpoint(checkpoint, device=device, num_threads=threads or None, backend="onnx")
+        localizers["onnx"] = Localizer.from_checkpoint(checkpoint, device=device, num_threads=threads, backend="onnx")
     except UserError as err:
         result["onnx_error"] = str(err)
     counters = {name: 0 for name in localizers}
@@ -212,11 +212,11 @@ def lite_step(checkpoint: Path, frames: list[np.ndarray], device: str, threads: 
 
 def node_latency(checkpoint: Path, frames: list[np.ndarray], workdir: Path, device: str, threads: int, backend: str, transport: str,
                  repetitions: int, warmup: int, timeout_s: float = 300.0) -> dict:
-    """Run ``python -m vlocnetpp_ros.latency_bench`` (the real node over DDS vs the bare Localizer,
+    """Run the ``latency-bench`` ROS program (the real node over DDS vs the bare Localizer,
     interleaved); medians of its per-frame seconds, and the node's memory."""
     path = workdir / "camera_frames.npy"
     np.save(path, np.stack(frames))
-    argv = [sys.executable, "-m", "vlocnetpp_ros.latency_bench", "--checkpoint", str(checkpoint), "--frames", str(path),
+    argv = [*program_command("latency-bench"), "--checkpoint", str(checkpoint), "--frames", str(path),
             "--repetitions", str(repetitions), "--warmup", str(warmup), "--device", device, "--backend", backend,
             "--num-threads", str(threads), "--transport", transport]
     try:

@@ -4,9 +4,9 @@ A transform maps a clip (a list of :class:`Frame`) and a ``numpy.random.Generato
 clip. Random parameters are drawn once per clip, so every frame of a clip gets the same crop,
 scale, jitter and flip (temporal fusion and warping need consistent frames). Every geometric
 transform updates the intrinsics, so projecting a 3D point with the new ``Frame.intrinsics``
-lands on the same image content. Images are resized with area (down) / linear (up)
-interpolation; depth and labels with exact nearest neighbour (pixel-centre aligned), so valid
-and invalid depth are never blended.
+lands on the same image content. Resizing follows the localizer's rules (``preprocess.resize_image``:
+area when shrinking, else linear; depth and labels with exact pixel-centre nearest neighbour, so
+valid and invalid depth are never blended), so evaluation and the node see the same pixels.
 
 Horizontal flip: a mirrored image has no rigid camera pose in the real world. :class:`HorizontalFlip`
 mirrors the world too (poses conjugated by ``M = diag(-1, 1, 1)``), which keeps relative poses,
@@ -21,33 +21,26 @@ import dataclasses
 import math
 from collections.abc import Sequence
 
-import cv2
 import numpy as np
 
 from vlocnetpp_core.data.sample import Frame
+from vlocnetpp_core.preprocess import resize_image, resize_nearest
 
 Clip = list[Frame]
 
 
-def _nearest(arr: np.ndarray, width: int, height: int) -> np.ndarray:
-    """Pixel-centre aligned nearest-neighbour resize (source pixel ``floor((x + 0.5) * s)``)."""
-    h, w = arr.shape[:2]
-    rows = np.minimum(((np.arange(height) + 0.5) * (h / height)).astype(np.int64), h - 1)
-    cols = np.minimum(((np.arange(width) + 0.5) * (w / width)).astype(np.int64), w - 1)
-    return arr[rows[:, None], cols[None, :]]
-
-
 def resize_frame(frame: Frame, width: int, height: int) -> Frame:
-    """Resize to ``width x height`` (aspect may change; intrinsics follow)."""
+    """Resize to ``width x height`` (aspect may change; intrinsics follow) with the localizer's rules
+    (:func:`vlocnetpp_core.preprocess.resize_image`, :func:`~vlocnetpp_core.preprocess.resize_nearest`)."""
     h, w = frame.image.shape[:2]
     if (w, h) == (width, height):
         return frame
-    interp = cv2.INTER_AREA if width < w and height < h else cv2.INTER_LINEAR
+    size = (width, height)
     return dataclasses.replace(
         frame,
-        image=cv2.resize(frame.image, (width, height), interpolation=interp),
-        depth=None if frame.depth is None else _nearest(frame.depth, width, height),
-        labels=None if frame.labels is None else _nearest(frame.labels, width, height),
+        image=resize_image(frame.image, size),
+        depth=None if frame.depth is None else resize_nearest(frame.depth, size),
+        labels=None if frame.labels is None else resize_nearest(frame.labels, size),
         intrinsics=frame.intrinsics.resized(width, height),
     )
 

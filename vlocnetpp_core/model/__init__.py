@@ -12,6 +12,7 @@ from vlocnetpp_core.model.stages import (
     STREAMS,
     is_trained_in,
     params_per_stream,
+    stage_tasks,
     stream_of,
     trainable_parameters,
 )
@@ -29,6 +30,7 @@ __all__ = [
     "TASKS",
     "is_trained_in",
     "params_per_stream",
+    "stage_tasks",
     "stream_of",
     "trainable_parameters",
     "StepOutput",

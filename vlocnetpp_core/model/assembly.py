@@ -12,13 +12,18 @@
 * ``"encoder"`` (``stl-loc`` on ``stl-seg``): the semantic encoder as the global stream's
   backbone (our stand-in for ImageNet weights; :func:`semantic_encoder_as_global_stream`).
 
-Only ``"whole"`` and ``"streams"`` pass the source stage's tasks on to the run.
+Only ``"whole"`` and ``"streams"`` pass the source stage's tasks on to the run. A pose-only network
+(no semantic stream) follows the same rules: tensors of streams it lacks are not in its state dict
+and are left out, and :func:`trained_tasks` counts only the tasks it has.
 """
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+
 import torch
 
+from vlocnetpp_core.model.config import TASKS
 from vlocnetpp_core.model.stages import STAGE_TASKS, stream_of
 
 INIT_RULES: dict[tuple[str, str], str] = {
@@ -61,10 +66,11 @@ def builds_semantic_fusion(stage: str, steps: int | None) -> bool:
     return stage == "mtl" and steps != 0
 
 
-def trained_tasks(training: dict) -> set[str] | None:
+def trained_tasks(training: dict, model_tasks: Iterable[str] = TASKS) -> set[str] | None:
     """The tasks (``loc``, ``vo``, ``seg``) whose streams a checkpoint's weights were trained for, from its
     sidecar's ``training`` entry: its stage's, plus those of ``--init`` checkpoints whose rule carries
-    them. One level deep: the sidecar records the stages of its inits, not theirs. A run of 0 steps
+    them, among the tasks its network has (``model_tasks``, ``ModelConfig.tasks``: no ``seg`` pose-only).
+    One level deep: the sidecar records the stages of its inits, not theirs. A run of 0 steps
     trained nothing itself. ``set()`` for a freshly initialised checkpoint, None when no stage is recorded."""
     stage = training.get("stage")
     if stage == "init":
@@ -76,7 +82,7 @@ def trained_tasks(training: dict) -> set[str] | None:
     for source in inits:
         if init_rule(stage, source.get("stage"), len(inits)) in TASK_CARRYING_RULES:
             tasks |= set(STAGE_TASKS.get(source.get("stage"), ()))
-    return tasks
+    return tasks & set(model_tasks)
 
 
 def semantic_encoder_as_global_stream(tensors: dict[str, torch.Tensor], own: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:

@@ -1,6 +1,6 @@
 """``ModelConfig``: every size and switch of the network, loaded from ``config/<name>.yaml``.
 
-``load_model_config("paper")`` / ``load_model_config("lite")`` read the YAML shipped with the
+``load_model_config("paper")`` / ``"lite"`` / ``"lite_pose"`` read the YAML shipped with the
 package (found by walking up from this file to the repository's ``config/`` or the install's
 ``share/vlocnetpp_ros/config/``); any other argument is a path to a YAML file with the same keys.
 Keys left out take the paper's values; unknown keys are an error naming the file.
@@ -19,7 +19,8 @@ from vlocnetpp_core.classes import NUM_CLASSES
 from vlocnetpp_core.errors import DataError, UserError
 
 PACKAGE = "vlocnetpp_ros"
-BUILTIN_CONFIGS = ("paper", "lite")
+BUILTIN_CONFIGS = ("paper", "lite", "lite_pose")
+TASKS = ("loc", "vo", "seg")  # global pose, odometry, segmentation
 
 
 @dataclass(frozen=True)
@@ -32,6 +33,12 @@ class ModelConfig:
     Res4c, the paper's best). The semantic encoder runs at output stride 16: Res4 blocks after
     the first have a ``semantic_res4_dilation`` branch next to the plain 3x3, Res5 uses
     dilation 2 instead of stride and its blocks get ``semantic_res5_dilations`` branches.
+
+    ``semantic_stream: false`` builds a pose-only network (global pose and odometry streams; for
+    data without semantic labels): no AdapNet stream, no depth head, no Res4c semantic fusion, no
+    warping. ``warping`` and ``semantic_fusion`` must then be false too (an error otherwise: they
+    are not silently switched off); the ``semantic_*``, ``num_classes`` and ``depth_*`` sizes are
+    unused.
     """
 
     name: str = "paper"
@@ -53,6 +60,7 @@ class ModelConfig:
     temporal_fusion: bool = True
     semantic_fusion: bool = True
     warping: bool = True
+    semantic_stream: bool = True
 
     def __post_init__(self) -> None:
         problems = self.problems()
@@ -80,7 +88,17 @@ class ModelConfig:
             out.append(f"depth_range must be 0 < min < max, got {self.depth_range}")
         if not 0 <= self.dropout < 1:
             out.append(f"dropout must be in [0, 1), got {self.dropout}")
+        needs_semantics = [k for k in ("warping", "semantic_fusion") if getattr(self, k)]
+        if not self.semantic_stream and needs_semantics:
+            out.append(f"semantic_stream is false (a pose-only network) but {' and '.join(needs_semantics)} "
+                       f"{'is' if len(needs_semantics) == 1 else 'are'} true: without the semantic stream there are no "
+                       f"semantic features to warp or fuse; set {' and '.join(f'{k}: false' for k in needs_semantics)}")
         return out
+
+    @property
+    def tasks(self) -> tuple[str, ...]:
+        """The tasks the network runs: ``("loc", "vo", "seg")``, or ``("loc", "vo")`` without the semantic stream."""
+        return TASKS if self.semantic_stream else TASKS[:2]
 
     @property
     def stage_channels(self) -> tuple[int, int, int, int]:
@@ -169,7 +187,7 @@ def config_dir() -> Path | None:
 
 
 def load_model_config(name_or_path: str | Path) -> ModelConfig:
-    """``"paper"`` / ``"lite"`` (shipped YAML) or a path to a YAML file -> :class:`ModelConfig`."""
+    """``"paper"`` / ``"lite"`` / ``"lite_pose"`` (shipped YAML) or a path to a YAML file -> :class:`ModelConfig`."""
     text = str(name_or_path)
     if text in BUILTIN_CONFIGS:
         folder = config_dir()

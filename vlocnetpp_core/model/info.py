@@ -8,12 +8,13 @@ from typing import Any
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--config", default="lite", help="model config: 'paper', 'lite' or a YAML file (default: lite)")
+    parser.add_argument("--config", default="lite", help="model config: 'paper', 'lite', 'lite_pose' (no semantic stream) or a YAML file (default: lite)")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
 
 
 def model_info(config_name: str) -> dict[str, Any]:
-    """Summary of the network a config builds: input size, switches, parameter counts."""
+    """Summary of the network a config builds: input size, switches, tasks, parameter counts (per stage: the
+    stages the network can train; a pose-only network has no ``stl-seg``)."""
     from vlocnetpp_core.model import STAGES, VLocNetPP, load_model_config, params_per_stream, trainable_parameters
 
     config = load_model_config(config_name)
@@ -24,15 +25,29 @@ def model_info(config_name: str) -> dict[str, Any]:
         "input_size": list(config.input_size),
         "params_total": sum(per_stream.values()),
         "params_per_stream": per_stream,
-        "params_trained_per_stage": {stage: sum(p.numel() for p in trainable_parameters(model, stage)) for stage in STAGES},
-        "switches": {k: getattr(config, k) for k in ("temporal_fusion", "semantic_fusion", "warping")},
-        "num_classes": config.num_classes,
+        "params_trained_per_stage": {stage: sum(p.numel() for p in trainable_parameters(model, stage)) for stage in STAGES
+                                     if _trains(stage, config.tasks)},
+        "switches": {k: getattr(config, k) for k in ("semantic_stream", "temporal_fusion", "semantic_fusion", "warping")},
+        "tasks": list(config.tasks),
+        "num_classes": config.num_classes if config.semantic_stream else 0,
     }
+
+
+def _trains(stage: str, tasks: tuple[str, ...]) -> bool:
+    """Whether a network with ``tasks`` can train ``stage`` (a pose-only one cannot train ``stl-seg``)."""
+    from vlocnetpp_core.model.stages import stage_tasks
+
+    try:
+        stage_tasks(stage, tasks)
+    except ValueError:
+        return False
+    return True
 
 
 def format_table(info: dict[str, Any]) -> str:
     w, h = info["input_size"]
-    lines = [f"model config {info['config']!r}: input {w}x{h} (width x height), {info['num_classes']} classes",
+    classes = f"{info['num_classes']} classes" if info["num_classes"] else "pose only (no semantic stream)"
+    lines = [f"model config {info['config']!r}: input {w}x{h} (width x height), {classes}",
              "switches: " + ", ".join(f"{k}={'on' if v else 'off'}" for k, v in info["switches"].items()), "",
              f"{'stream':<12}{'parameters':>14}"]
     lines += [f"{name:<12}{n:>14,}" for name, n in info["params_per_stream"].items()]

@@ -66,14 +66,17 @@ class BackboneLoadReport:
 
 
 def backbone_copies(model: nn.Module) -> dict[str, dict[str, nn.Module]]:
-    """The ResNet-50 shaped parts of a :class:`VLocNetPP`: ``copy -> {"stem" | "res2".."res5": module}``."""
+    """The ResNet-50 shaped parts of a :class:`VLocNetPP`: ``copy -> {"stem" | "res2".."res5": module}``
+    (no ``semantic`` copy in a pose-only network)."""
     sem = model.semantic
-    return {
+    copies = {
         "global": {"stem": model.trunk.stem, "res2": model.trunk.res2, "res3": model.trunk.res3,
                    "res4": model.global_stream.res4, "res5": model.global_stream.res5},
         "odometry": {"res4": model.odometry.res4, "res5": model.odometry.res5},
-        "semantic": {"stem": sem.stem, "res2": sem.res2, "res3": sem.res3, "res4": sem.res4, "res5": sem.res5},
     }
+    if sem is not None:
+        copies["semantic"] = {"stem": sem.stem, "res2": sem.res2, "res3": sem.res3, "res4": sem.res4, "res5": sem.res5}
+    return copies
 
 
 def read_state_dict(path: str | Path) -> dict[str, torch.Tensor]:

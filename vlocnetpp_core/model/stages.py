@@ -7,14 +7,18 @@ the Res4f / Res5c warp AWFs, decoder), ``depth`` (the depth head for warping) an
 
 Stages (paper Sec. IV): ``stl-loc`` trains ``global``; ``stl-vo`` trains ``odometry`` and the
 shared trunk (its I_t stream up to Res3 *is* the trunk); ``stl-seg`` trains ``semantic`` and
-``depth``; ``mtl`` trains everything.
+``depth``; ``mtl`` trains everything. On a pose-only network (config ``semantic_stream: false``:
+no ``semantic``, ``depth`` or ``fusion`` weights) ``mtl`` trains ``loc`` + ``vo`` and ``stl-seg``
+is refused (:func:`stage_tasks`).
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 
 from torch import nn
+
+from vlocnetpp_core.model.config import TASKS
 
 STREAMS = ("global", "odometry", "semantic", "depth", "fusion")
 STAGES = ("stl-loc", "stl-vo", "stl-seg", "mtl")
@@ -49,6 +53,20 @@ def stream_of(name: str) -> str:
 def _check_stage(stage: str) -> None:
     if stage not in STAGES:
         raise ValueError(f"unknown stage {stage!r}; expected one of {STAGES}")
+
+
+def stage_tasks(stage: str, model_tasks: Iterable[str] = TASKS) -> tuple[str, ...]:
+    """The tasks a run of ``stage`` trains on a network that has ``model_tasks`` (``ModelConfig.tasks``):
+    :data:`STAGE_TASKS` of the stage, less those the network lacks (``mtl`` on a pose-only network:
+    ``loc``, ``vo``). ``ValueError`` when none is left (``stl-seg`` without the semantic stream)."""
+    _check_stage(stage)
+    have = set(model_tasks)
+    tasks = tuple(t for t in STAGE_TASKS[stage] if t in have)
+    if not tasks:
+        raise ValueError(f"stage {stage} trains the {' and '.join(TASK_NAMES[t] for t in STAGE_TASKS[stage])} stream, which this "
+                         f"model config does not have (semantic_stream: false, a pose-only network); it trains with "
+                         f"{', '.join(s for s in STAGES if set(STAGE_TASKS[s]) & have)}")
+    return tasks
 
 
 def is_trained_in(name: str, stage: str) -> bool:

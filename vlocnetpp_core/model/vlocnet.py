@@ -16,7 +16,9 @@ The warp (paper Eq. 4, :func:`geometry.warp_grid`) uses ``D_t`` and the predicte
 resolution and average-pooled to the OS16 feature size. Module names set the stream a weight
 belongs to (see ``stages.py``): ``trunk`` and ``global_stream`` are the global stream (the
 trunk is also the odometry I_t stream up to Res3), ``odometry``, ``semantic`` (encoder, warp
-fusions, decoder), ``depth_head`` and ``semantic_fusion`` (the inter-task Res4c AWF).
+fusions, decoder), ``depth_head`` and ``semantic_fusion`` (the inter-task Res4c AWF). A pose-only
+config (``semantic_stream: false``) has only the first three: ``semantic``, ``depth_head`` and
+``semantic_fusion`` are ``None``.
 """
 
 from __future__ import annotations
@@ -29,11 +31,9 @@ from torch import nn
 
 from vlocnetpp_core.geometry import pool_warp_grid, pose_to_matrix, warp_features, warp_grid
 from vlocnetpp_core.model.backbone import Stem, init_weights, make_stage
-from vlocnetpp_core.model.config import ModelConfig
+from vlocnetpp_core.model.config import TASKS, ModelConfig
 from vlocnetpp_core.model.fusion import AdaptiveWeightedFusion
 from vlocnetpp_core.model.heads import DepthHead, PoseHead, SegmentationDecoder
-
-TASKS = ("loc", "vo", "seg")
 
 
 @dataclass
@@ -135,11 +135,13 @@ class SemanticStream(nn.Module):
 class VLocNetPP(nn.Module):
     """VLocNet++ (paper Sec. III). Images are ``(B, 3, H, W)`` RGB in ``[0, 1]``; H, W multiples of 16.
 
-    ``tasks`` (any of ``"loc"``, ``"vo"``, ``"seg"``; default all) picks the streams a call runs,
-    so a single-task stage computes only its stream. The inter-task Res4c fusion runs only when
-    both ``loc`` and ``seg`` run; the odometry stream also runs for ``seg`` when warping needs
-    its relative pose (no ``warp_rel_pose`` given). Ablation switches of the config remove their
-    branch entirely (no parameters, no compute); without ``warping`` there is no depth head.
+    ``tasks`` (any of ``"loc"``, ``"vo"``, ``"seg"``; default: all the network has, ``config.tasks``)
+    picks the streams a call runs, so a single-task stage computes only its stream. The inter-task
+    Res4c fusion runs only when both ``loc`` and ``seg`` run; the odometry stream also runs for
+    ``seg`` when warping needs its relative pose (no ``warp_rel_pose`` given). Ablation switches of
+    the config remove their branch entirely (no parameters, no compute); without ``warping`` there
+    is no depth head. A pose-only network (``semantic_stream: false``) runs ``loc`` and ``vo`` and
+    refuses ``seg`` (``ValueError``).
     """
 
     def __init__(self, config: ModelConfig):
@@ -149,7 +151,7 @@ class VLocNetPP(nn.Module):
         self.trunk = Trunk(config)
         self.global_stream = GlobalPoseStream(config)
         self.odometry = OdometryStream(config)
-        self.semantic = SemanticStream(config)
+        self.semantic = SemanticStream(config) if config.semantic_stream else None
         self.depth_head = DepthHead(c[1], config.depth_width, config.depth_range) if config.warping else None
         self.semantic_fusion = AdaptiveWeightedFusion(c[2], c[3]) if config.semantic_fusion else None
         self.register_buffer("mean", torch.tensor(config.mean).view(1, 3, 1, 1), persistent=False)
@@ -185,13 +187,13 @@ class VLocNetPP(nn.Module):
             K: ``(B, 3, 3)`` intrinsics at ``H x W``; required when the semantic stream warps.
             depth: ``(B, 1, H, W)`` metres (0 = invalid) used for warping instead of the prediction.
             warp_rel_pose: ``(B, 4, 4)`` ``T_{t-1}^{-1} T_t`` used for warping instead of the odometry output.
-            tasks: streams to run (default ``("loc", "vo", "seg")``).
+            tasks: streams to run (default ``config.tasks``: ``("loc", "vo", "seg")``, or ``("loc", "vo")`` pose-only).
 
         Returns:
             ``(StepOutput, StreamState)``; the state keeps the autograd graph (call
             :meth:`StreamState.detach` to cut it).
         """
-        run = _check_tasks(tasks)
+        run = _check_tasks(tasks, self.config.tasks)
         self._check_image(image)
         prev = state if state is not None else StreamState()
         x = (image - self.mean) / self.std
@@ -346,11 +348,14 @@ class _Warper:
         return warp_features(features, *self.pooled[size])
 
 
-def _check_tasks(tasks: Iterable[str] | None) -> frozenset[str]:
-    run = frozenset(TASKS if tasks is None else tasks)
+def _check_tasks(tasks: Iterable[str] | None, available: tuple[str, ...]) -> frozenset[str]:
+    run = frozenset(available if tasks is None else tasks)
     unknown = run - set(TASKS)
     if unknown or not run:
         raise ValueError(f"tasks must be a non-empty subset of {TASKS}, got {sorted(run)}")
+    if run - set(available):
+        raise ValueError(f"this network has no semantic stream (model config semantic_stream: false), so it cannot run "
+                         f"{sorted(run - set(available))}; its tasks are {', '.join(available)}")
     return run
 
 

@@ -185,25 +185,10 @@ def _render_into(root: Path, scene: str, seed: int, train_loops: int, test_loops
     finally:
         writer.close()
         bar.close()
-    preview = root / "preview"
-    preview.mkdir()
-    _imwrite(preview / "mosaic.png", mosaic(samples)[..., ::-1])
-    _imwrite(preview / "map.png", top_down_map(campus, trajectories)[..., ::-1])
-    scene_info = {
-        "generator": "vlocnetpp synthetic campus",
-        "generator_version": GENERATOR_VERSION,
-        "scene": scene,
-        "seed": seed,
-        "size": list(size),
-        "frames_per_loop": frames,
-        "loops": loops,
-        "id_stride": ID_STRIDE,
-        "frame_interval_s": frame_interval,
-        "intrinsics": K.to_dict(),
-        "landmarks": [{"name": n, "x": round(x, 3), "y": round(y, 3)} for n, x, y in campus.landmarks],
-        "visits": loop_info,
-    }
-    (root / "scene.json").write_text(json.dumps(scene_info, indent=2, sort_keys=True) + "\n")
+    _write_scene_info(root, campus, samples, trajectories, {
+        "scene": scene, "seed": seed, "size": list(size), "frames_per_loop": frames, "loops": loops,
+        "frame_interval_s": frame_interval, "intrinsics": K.to_dict(), "visits": loop_info,
+    })
     return {
         "scene": scene,
         "seed": seed,
@@ -215,6 +200,23 @@ def _render_into(root: Path, scene: str, seed: int, train_loops: int, test_loops
         "render_seconds": render_time,
         "render_fps": total / render_time if render_time > 0 else float("nan"),
     }
+
+
+def _write_scene_info(root: Path, campus, samples: list, trajectories: list, info: dict) -> None:
+    """``preview/mosaic.png`` (sample frames), ``preview/map.png`` (top-down map with the visits) and
+    ``scene.json`` (generator, ``info``, landmarks)."""
+    preview = root / "preview"
+    preview.mkdir()
+    _imwrite(preview / "mosaic.png", mosaic(samples)[..., ::-1])
+    _imwrite(preview / "map.png", top_down_map(campus, trajectories)[..., ::-1])
+    scene_info = {
+        "generator": "vlocnetpp synthetic campus",
+        "generator_version": GENERATOR_VERSION,
+        "id_stride": ID_STRIDE,
+        **info,
+        "landmarks": [{"name": n, "x": round(x, 3), "y": round(y, 3)} for n, x, y in campus.landmarks],
+    }
+    (root / "scene.json").write_text(json.dumps(scene_info, indent=2, sort_keys=True) + "\n")
 
 
 class _BackgroundWriter:

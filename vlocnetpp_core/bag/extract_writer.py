@@ -1,0 +1,144 @@
+"""Writing the frames ``vlocnetpp extract`` keeps as a DeepLoc-layout dataset, atomically.
+
+Layout (what :mod:`vlocnetpp_core.data.deeploc` reads; no labels)::
+
+    OUT/DeepLoc/{train,test}/LeftImages/Image_<id>.png           RGB (BGR on disk, as cv2 writes), lossless
+    OUT/DeepLoc/{train,test}/poses.txt                           '# comment', header, 'Image_<id>.png x y z qw qx qy qz' (T_wc)
+    OUT/DeepLoc/{train,test}/stamps.txt                          'Image_<id>.png <header stamp, integer ns>' (not read by the reader)
+    OUT/DeepLoc_stereo/{train,test}/DepthImages/Image_<id>.pfm   32FC1 depth: float32 metres (0 = invalid)
+    OUT/DeepLoc_stereo/{train,test}/DepthImages/Image_<id>.png   16UC1 depth: uint16 millimetres as in the bag
+    OUT/intrinsics.json                                          {"fx", "fy", "cx", "cy", "width", "height"}
+    OUT/extract.json                                             where it came from: bag, topics, options, counts
+
+:func:`atomic_output_dir` gives a hidden temporary folder next to ``OUT``
+(``.OUT.partial-<pid>``, the naming of :mod:`vlocnetpp_core.bag.bagfile`, whose stale-folder cleanup
+it shares) that is renamed to ``OUT`` only when the block ends without an error; an error, Ctrl-C
+or SIGTERM (with :func:`~vlocnetpp_core.bag.bagfile.sigterm_as_interrupt`) deletes it.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from collections import deque
+from collections.abc import Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
+from contextlib import contextmanager
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from vlocnetpp_core.bag.bagfile import remove_stale_temps, temp_dir_for
+from vlocnetpp_core.bag.extract_plan import PlannedFrame
+from vlocnetpp_core.data.pfm import write_pfm
+from vlocnetpp_core.errors import DataError, UserError
+from vlocnetpp_core.intrinsics import Intrinsics
+
+
+def check_output(out: Path, force: bool) -> None:
+    """Refuse an existing ``out`` without ``force``, and anything but a folder even with it."""
+    if out.exists() and not force:
+        raise UserError(f"{out}: exists already (use --force to replace it)")
+    if out.exists() and not out.is_dir():
+        raise UserError(f"{out}: exists and is not a folder; not replacing it")
+
+
+@contextmanager
+def atomic_output_dir(out: str | Path, force: bool = False) -> Iterator[Path]:
+    """Yield an empty temporary folder that becomes ``out`` when the block succeeds (an old ``out`` is
+    replaced only then, with ``force``); on any exception it is deleted and ``out`` left as it was."""
+    out = Path(out)
+    check_output(out, force)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    remove_stale_temps(out)
+    tmp = temp_dir_for(out)
+    tmp.mkdir()
+    try:
+        yield tmp
+        if out.exists():
+            old = tmp.with_name(tmp.name + "-old")
+            os.replace(out, old)
+            try:
+                os.replace(tmp, out)
+            except BaseException:
+                os.replace(old, out)  # put the previous dataset back
+                raise
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.replace(tmp, out)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _imwrite(path: Path, img: np.ndarray) -> None:
+    if not cv2.imwrite(str(path), np.ascontiguousarray(img)):
+        raise DataError(path, "could not write the image (disk full or no permission?)")
+
+
+class DeepLocWriter:
+    """Writes images and depth of :class:`PlannedFrame` s under ``root`` (module doc) on background threads
+    (PNG encoding releases the GIL), at most ``max_pending`` files in flight; :meth:`finish` writes the index."""
+
+    def __init__(self, root: Path, threads: int = 2, max_pending: int = 8):
+        self.root = Path(root)
+        self._pool = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="extract-writer")
+        self._pending: deque[Future] = deque()
+        self._max = max_pending
+        self.images: set[tuple[str, int]] = set()  # (split, id) of the images written
+        self.depths: dict[tuple[str, int], Path] = {}  # (split, id) -> depth file written
+
+    def _dir(self, *parts: str) -> Path:
+        d = self.root.joinpath(*parts)
+        d.mkdir(parents=True, exist_ok=True)
+        return d
+
+    def _submit(self, fn, *args) -> None:
+        self._pending.append(self._pool.submit(fn, *args))
+        while len(self._pending) > self._max:
+            self._pending.popleft().result()  # re-raises a failed write
+
+    def image(self, frame: PlannedFrame, rgb: np.ndarray) -> None:
+        """``rgb (H, W, 3) uint8`` as ``LeftImages/Image_<id>.png``."""
+        self._submit(_imwrite, self._dir("DeepLoc", frame.split, "LeftImages") / frame.name, rgb[..., ::-1])
+        self.images.add((frame.split, frame.id))
+
+    def depth(self, frame: PlannedFrame, depth: np.ndarray) -> None:
+        """``depth (H, W)``: float32 metres (written as PFM) or uint16 millimetres (16-bit PNG)."""
+        folder = self._dir("DeepLoc_stereo", frame.split, "DepthImages")
+        if depth.dtype == np.uint16:
+            path = folder / f"Image_{frame.id}.png"
+            self._submit(_imwrite, path, depth)
+        else:
+            path = folder / f"Image_{frame.id}.pfm"
+            self._submit(write_pfm, path, depth.astype(np.float32))
+        self.depths[(frame.split, frame.id)] = path
+
+    def close(self) -> None:
+        """Wait for every pending file (re-raising the first failure)."""
+        try:
+            while self._pending:
+                self._pending.popleft().result()
+        finally:
+            for f in self._pending:
+                f.cancel()
+            self._pool.shutdown(wait=True)
+
+    def finish(self, frames: list[PlannedFrame], K: Intrinsics, provenance: dict) -> list[PlannedFrame]:
+        """Write ``poses.txt`` and ``stamps.txt`` per split for the frames whose image was written,
+        ``intrinsics.json`` and ``extract.json``; delete depth files of frames without an image.
+        Returns the frames written."""
+        self.close()
+        written = [f for f in frames if (f.split, f.id) in self.images]
+        for key in set(self.depths) - self.images:
+            self.depths.pop(key).unlink(missing_ok=True)
+        for split in sorted({f.split for f in written}):
+            rows = [f for f in written if f.split == split]
+            lines = [f"# extracted by vlocnetpp extract from {provenance.get('bag', '?')}", "ImageName x y z qw qx qy qz"]
+            lines += [f"{f.name} " + " ".join(f"{v:.9f}" for v in (*f.t, *f.q)) for f in rows]
+            (self.root / "DeepLoc" / split / "poses.txt").write_text("\n".join(lines) + "\n")
+            (self.root / "DeepLoc" / split / "stamps.txt").write_text("".join(f"{f.name} {f.stamp_ns}\n" for f in rows))
+        (self.root / "intrinsics.json").write_text(json.dumps(K.to_dict(), indent=2) + "\n")
+        (self.root / "extract.json").write_text(json.dumps(provenance, indent=2, sort_keys=True) + "\n")
+        return written
