@@ -94,3 +94,22 @@ def test_a_failing_stage_names_its_log(tmp_path, capsys):
 def test_train_without_recipe_needs_config_data_and_stage(tmp_path, capsys):
     assert cli(["train", "--out", str(tmp_path / "run"), "--config", "lite"]) == 2
     assert "--data, --stage required (or --recipe FILE)" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("name", ["shipped", "own_robot"])
+def test_the_shipped_recipes_give_valid_train_commands(name, tmp_path):
+    """Every stage of config/recipes/NAME.yaml is a `vlocnetpp train` command line that parses, with its inits."""
+    from conftest import REPO
+
+    from vlocnetpp_core.cli import build_parser
+
+    recipe = load_recipe(REPO / "config" / "recipes" / f"{name}.yaml")
+    parser = build_parser("train")
+    for stage in recipe.stages:
+        commands = stage_commands(stage, recipe, tmp_path)
+        assert len(commands) == len(stage.schedule)
+        for command in commands:
+            args = parser.parse_args(command[command.index("train"):])
+            assert args.stage == stage.stage and args.config == recipe.config
+            assert [str(tmp_path / ref / "best.safetensors") for ref in stage.init] == (args.init or [])
+    assert recipe.export["stage"] == recipe.stages[-1].name

@@ -134,11 +134,6 @@ def base_pose(t_wc: np.ndarray, q_wc: np.ndarray, ext: CameraExtrinsics) -> tupl
     return _moved(t_wc, q_wc, np.eye(4), ext)[:2]
 
 
-def camera_pose(t_wb: np.ndarray, q_wb: np.ndarray, ext: CameraExtrinsics) -> tuple[np.ndarray, np.ndarray]:
-    """``T_world,camera = T_world,base T_base,camera``: the inverse of :func:`base_pose`."""
-    return geometry.pose_compose(np.asarray(t_wb, dtype=np.float64), np.asarray(q_wb, dtype=np.float64), ext.t, ext.q)
-
-
 def base_pose_covariance(covariance: np.ndarray, q_wc: np.ndarray, ext: CameraExtrinsics) -> np.ndarray:
     """Covariance of :func:`base_pose` from that of the camera pose with orientation ``q_wc`` (module convention)."""
     R = geometry.quat_to_matrix(np.asarray(q_wc, dtype=np.float64))

@@ -163,19 +163,6 @@ def timing_metrics(ms: np.ndarray | None) -> dict:
 # --------------------------------------------------------------------------- trajectory metrics (evo-compatible)
 
 
-def error_stats(errors: np.ndarray) -> dict:
-    """``rmse``, ``mean``, ``median``, ``std``, ``min``, ``max`` of an error array (the statistics ``evo`` prints)."""
-    e = np.asarray(errors, np.float64)
-    return {
-        "rmse": float(np.sqrt(np.mean(e**2))),
-        "mean": float(np.mean(e)),
-        "median": float(np.median(e)),
-        "std": float(np.std(e)),
-        "min": float(np.min(e)),
-        "max": float(np.max(e)),
-    }
-
-
 def ate(ref: Trajectory, est: Trajectory, align: bool = False, with_scale: bool = False) -> np.ndarray:
     """Absolute translation error ``(N,)`` in metres of ``est`` against ``ref`` (matched frame by frame).
 

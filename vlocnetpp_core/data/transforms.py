@@ -74,12 +74,6 @@ def flip_frame(frame: Frame) -> Frame:
     )
 
 
-def cover_size(width: int, height: int, size: tuple[int, int], scale: float = 1.0) -> tuple[int, int]:
-    """Smallest aspect-keeping size (times ``scale`` >= 1) of a ``width x height`` image covering ``size (W, H)``."""
-    s = max(size[0] / width, size[1] / height) * scale
-    return max(size[0], round(width * s)), max(size[1], round(height * s))
-
-
 class Compose:
     """Apply transforms in order."""
 
@@ -111,31 +105,6 @@ class Resize:
         s = draw_scale(self.scale, rng)
         w, h = (max(self.size[0], round(self.size[0] * s)), max(self.size[1], round(self.size[1] * s)))
         return [resize_frame(f, w, h) for f in clip]
-
-
-@dataclasses.dataclass
-class ResizeCover:
-    """Keep the aspect and resize so the image covers ``size (W, H)``, times a random factor in ``scale``."""
-
-    size: tuple[int, int]
-    scale: tuple[float, float] = (1.0, 1.0)
-
-    def __call__(self, clip: Clip, rng: np.random.Generator) -> Clip:
-        s = draw_scale(self.scale, rng)
-        h, w = clip[0].image.shape[:2]
-        return [resize_frame(f, *cover_size(w, h, self.size, s)) for f in clip]
-
-
-@dataclasses.dataclass
-class CenterCrop:
-    """Central ``size (W, H)`` window (testing)."""
-
-    size: tuple[int, int]
-
-    def __call__(self, clip: Clip, rng: np.random.Generator) -> Clip:
-        h, w = clip[0].image.shape[:2]
-        x0, y0 = (w - self.size[0]) // 2, (h - self.size[1]) // 2
-        return [crop_frame(f, x0, y0, *self.size) for f in clip]
 
 
 @dataclasses.dataclass

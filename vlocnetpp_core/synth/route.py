@@ -78,16 +78,3 @@ def rounded_rectangle(name: str, x0: float, y0: float, x1: float, y1: float, r: 
     line(x0, y1 - r, x0, y0 + r)
     arc(x0 + r, y0 + r, math.pi)
     return Route(name, np.vstack(pieces))
-
-
-def polyline_route(name: str, pts: list[tuple[float, float]], step: float = 0.1) -> Route:
-    """A back-and-forth route along an open polyline (there and back on the same line)."""
-    p = np.asarray(pts, np.float64)
-    out = []
-    for a, b in zip(p[:-1], p[1:], strict=True):
-        n = max(1, int(math.ceil(np.linalg.norm(b - a) / step)))
-        f = (np.arange(n) / n)[:, None]
-        out.append(a + (b - a) * f)
-    out.append(p[-1:])
-    fwd = np.vstack(out)
-    return Route(name, np.vstack([fwd, fwd[-2:0:-1]]))
