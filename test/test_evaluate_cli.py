@@ -11,8 +11,9 @@ import torch
 
 from vlocnetpp_core import cli
 from vlocnetpp_core.classes import CLASS_NAMES
+from vlocnetpp_core.geometry import pose_to_matrix
 from vlocnetpp_core.metrics import kitti_segment_errors, pose_errors
-from vlocnetpp_core.trajectory import pose_matrices, read_tum
+from vlocnetpp_core.trajectory import read_tum
 
 FRAMES = 12
 
@@ -68,7 +69,7 @@ def test_evaluate_writes_report_trajectories_and_plots(evaluated, capsys):
     np.testing.assert_allclose(odo.t[0], truth.t[0], atol=1e-12)  # odometry starts at the true first pose
     odometry = report["overall"]["odometry"]
     assert len(odometry["lengths_m"]) == 8 and odometry["lengths_m"][0] > 0
-    t_err, _ = kitti_segment_errors(pose_matrices(truth.t, truth.q), pose_matrices(odo.t, odo.q), odometry["lengths_m"])
+    t_err, _ = kitti_segment_errors(pose_to_matrix(truth.t, truth.q), pose_to_matrix(odo.t, odo.q), odometry["lengths_m"])
     assert odometry["translation_error_percent"] == pytest.approx(100 * np.mean(t_err), rel=1e-6)
 
     # the baseline: the pose of the nearest training image of --data, on the same frames

@@ -31,7 +31,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from vlocnetpp_core.classes import CLASS_NAMES, IGNORE_INDEX
-from vlocnetpp_core.trajectory import Trajectory, accumulate_odometry, align_trajectory, pose_matrices
+from vlocnetpp_core.geometry import pose_to_matrix
+from vlocnetpp_core.trajectory import Trajectory, accumulate_odometry, align_trajectory
 
 DEFAULT_THRESHOLDS: tuple[tuple[float, float], ...] = ((0.05, 5.0), (0.5, 5.0))
 DEFAULT_LENGTH_FRACTIONS: tuple[float, ...] = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8)
@@ -307,7 +308,7 @@ def evaluate_sequences(
         trans, rot = pose_errors(r.pred_t, r.pred_q, r.true_t, r.true_q)
         odom = r.odometry()
         if odom is not None:
-            t_seg, r_seg = kitti_segment_errors(pose_matrices(r.true_t, r.true_q), odom.matrices(), odometry_lengths_m)
+            t_seg, r_seg = kitti_segment_errors(pose_to_matrix(r.true_t, r.true_q), odom.matrices(), odometry_lengths_m)
         else:
             t_seg, r_seg = np.zeros(0), np.zeros(0)
         per_sequence[r.name] = {

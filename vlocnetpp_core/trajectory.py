@@ -1,4 +1,4 @@
-"""Trajectories: TUM files, odometry accumulation and Umeyama alignment (numpy and scipy, no torch).
+"""Trajectories: TUM files, odometry accumulation and Umeyama alignment (numpy; rotations from ``geometry``).
 
 A :class:`Trajectory` is ``N`` stamped camera-to-world poses ``T_wc`` (DESIGN section 3):
 ``stamps (N,)`` seconds, ``t (N, 3)`` metres, ``q (N, 4)`` unit quaternions ``(w, x, y, z)``
@@ -13,45 +13,18 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from vlocnetpp_core.errors import DataError
+from vlocnetpp_core.geometry import matrix_to_quat, pose_to_matrix, quat_to_matrix
 
 __all__ = [
     "Trajectory",
-    "quat_to_matrix",
-    "matrix_to_quat",
-    "pose_matrices",
     "read_tum",
     "write_tum",
     "accumulate_odometry",
     "umeyama_alignment",
     "align_trajectory",
 ]
-
-
-def quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    """Rotation matrices ``(..., 3, 3)`` of quaternions ``(..., 4)`` ``(w, x, y, z)`` (normalised here)."""
-    q = np.asarray(q, dtype=np.float64)
-    return Rotation.from_quat(q.reshape(-1, 4)[:, [1, 2, 3, 0]]).as_matrix().reshape(q.shape[:-1] + (3, 3))
-
-
-def matrix_to_quat(R: np.ndarray) -> np.ndarray:
-    """Unit quaternions ``(..., 4)`` ``(w, x, y, z)`` with ``w >= 0`` of rotation matrices ``(..., 3, 3)``."""
-    R = np.asarray(R, dtype=np.float64)
-    q = Rotation.from_matrix(R.reshape(-1, 3, 3)).as_quat()[:, [3, 0, 1, 2]]
-    q = np.where(q[:, :1] < 0, -q, q)
-    return q.reshape(R.shape[:-2] + (4,))
-
-
-def pose_matrices(t: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """Homogeneous ``(N, 4, 4)`` matrices of ``t (N, 3)``, ``q (N, 4)``."""
-    t = np.asarray(t, dtype=np.float64)
-    T = np.zeros(t.shape[:-1] + (4, 4))
-    T[..., :3, :3] = quat_to_matrix(q)
-    T[..., :3, 3] = t
-    T[..., 3, 3] = 1.0
-    return T
 
 
 @dataclass
@@ -82,7 +55,7 @@ class Trajectory:
 
     def matrices(self) -> np.ndarray:
         """Homogeneous ``(N, 4, 4)`` matrices."""
-        return pose_matrices(self.t, self.q)
+        return pose_to_matrix(self.t, self.q)
 
     def path_length(self) -> float:
         """Length in metres of the polyline through the positions."""
@@ -141,9 +114,9 @@ def accumulate_odometry(t0: np.ndarray, q0: np.ndarray, rel_t: np.ndarray, rel_q
     ``rel_t (N, 3)``, ``rel_q (N, 4)`` hold ``T_rel,k = T_{k-1}^{-1} T_k`` for frame ``k``; row 0
     (the first frame has no predecessor) is ignored. Returns ``t (N, 3)``, ``q (N, 4)``.
     """
-    rel = pose_matrices(rel_t, rel_q)
+    rel = pose_to_matrix(rel_t, rel_q)
     T = np.empty_like(rel)
-    T[0] = pose_matrices(np.asarray(t0)[None], np.asarray(q0)[None])[0]
+    T[0] = pose_to_matrix(np.asarray(t0)[None], np.asarray(q0)[None])[0]
     for k in range(1, len(rel)):
         T[k] = T[k - 1] @ rel[k]
     return T[:, :3, 3].copy(), matrix_to_quat(T[:, :3, :3])

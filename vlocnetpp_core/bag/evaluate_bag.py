@@ -51,6 +51,7 @@ from vlocnetpp_core.bag.topics import (
 from vlocnetpp_core.classes import CLASS_NAMES
 from vlocnetpp_core.errors import DataError, UserError
 from vlocnetpp_core.extrinsics import CameraExtrinsics
+from vlocnetpp_core.geometry import matrix_to_quat, pose_to_matrix
 from vlocnetpp_core.metrics import SequenceResult, confusion_matrix, evaluate_sequences
 from vlocnetpp_core.report import (
     add_baseline,
@@ -60,7 +61,6 @@ from vlocnetpp_core.report import (
     without_segmentation,
     write_outputs,
 )
-from vlocnetpp_core.trajectory import matrix_to_quat, pose_matrices
 
 _PENDING_LIMIT = 64  # label maps / masks waiting for their partner stamp (a partner never seen is dropped)
 
@@ -148,7 +148,7 @@ def relative_odometry(odom_t: np.ndarray, odom_q: np.ndarray) -> tuple[np.ndarra
     """``T_{k-1}^{-1} T_k`` of consecutive odometry poses (row 0 identity), or None when any pose is missing."""
     if len(odom_t) == 0 or np.isnan(odom_t).any() or np.isnan(odom_q).any():
         return None
-    T = pose_matrices(odom_t, odom_q)
+    T = pose_to_matrix(odom_t, odom_q)
     rel = np.broadcast_to(np.eye(4), T.shape).copy()
     rel[1:] = np.linalg.inv(T[:-1]) @ T[1:]
     return rel[:, :3, 3].copy(), matrix_to_quat(rel[:, :3, :3])
