@@ -45,9 +45,9 @@ def test_localization_loss_known_values_in_se3_form():
     assert parts["q"].item() == pytest.approx(q_err)
     assert parts["x_rel"].item() == pytest.approx(0.0, abs=1e-6)  # a world-frame difference would give 1.41
     assert parts["q_rel"].item() == pytest.approx(0.0, abs=1e-6)
-    # s_x = 0, s_q = -3 (paper init): L = L_x + L_q e^3 - 3 + L_x_rel + L_q_rel e^3 - 3
-    assert loss.item() == pytest.approx(1.5 + q_err * math.exp(3) - 3 - 3, rel=1e-5)
-    assert [n for n, _ in crit.named_parameters()] == ["s_x", "s_q", "s_x_rel", "s_q_rel"]
+    # s_x = 0, s_q = -3 (paper init), the consistency errors sharing the global weights: (L_x + L_x_rel) + (L_q + L_q_rel) e^3 - 3
+    assert loss.item() == pytest.approx(1.5 + q_err * math.exp(3) - 3, rel=1e-5)
+    assert [n for n, _ in crit.named_parameters()] == ["s_x", "s_q"]
     # s_q_init = 0 (train --s-q-init 0): both rotation terms enter unweighted
     loss0, _ = VLocNetLoss("stl-loc", s_q_init=0.0)(outputs, batch)
     assert loss0.item() == pytest.approx(1.5 + q_err, rel=1e-5)
@@ -121,8 +121,8 @@ def test_multitask_weighting_eq6():
     batch = {"t": torch.zeros(1, 2, 3), "q": torch.tensor([[IDENTITY_Q] * 2]), "rel_t": torch.zeros(1, 2, 3),
              "rel_q": torch.tensor([[IDENTITY_Q] * 2]), "labels": labels, "depth": depth[:, None].expand(1, 2, 1, 2, 3) * math.e}
     loss, parts = crit([out, out], batch)
-    assert parts["loc"].item() == pytest.approx(-6.0) and parts["vo"].item() == pytest.approx(-3.0)
-    expected = -6.0 - 3.0 + math.log(10) * math.exp(-1.0) + 1.0 + 1.0 * math.exp(0.5) - 0.5
+    assert parts["loc"].item() == pytest.approx(-3.0) and parts["vo"].item() == pytest.approx(-3.0)
+    expected = -3.0 - 3.0 + math.log(10) * math.exp(-1.0) + 1.0 + 1.0 * math.exp(0.5) - 0.5
     assert loss.item() == pytest.approx(expected, rel=1e-5)
     with pytest.raises(ValueError, match="stage"):
         VLocNetLoss("stl-depth")
