@@ -1,11 +1,12 @@
 """The model shipped in models/ against an untrained model of the same config (with the same position
-prior, so the baseline already predicts the middle of the campus) on fresh synthetic frames.
+prior, so the baseline already predicts the middle of the campus) on a fresh synthetic loop, and the
+retrieval baseline shipped beside it (models/vlocnetpp_lite.reference.npz) on the same frames.
 
-What it achieves today (README, "Results"), here on 40 frames of a fresh loop: segmentation and
-odometry far better than untrained (mIoU 0.66 vs 0.02, per-frame odometry error 0.23 vs 0.87 m), the
-heading several times better (median 19 vs 88 deg) and the position three times better (8.6 vs
-26.7 m), though far from the 0.5 m target (over the demo loops 9.4 m against 30.4 m for the prior
-alone); README says so.
+What it achieves today (README, "Results"), here on the 175 frames of a fresh loop: segmentation and
+odometry far better than untrained, the heading several times better and the position about three
+times better, though far from the 0.5 m target and far behind retrieval (over four test seeds 7.4 m /
+19 deg against 0.6 m / 2.3 deg); README says so. The target (median under 1 m here) is not asserted
+while it is not met (issue 21).
 """
 
 from __future__ import annotations
@@ -27,11 +28,11 @@ from vlocnetpp_core.synth import render_dataset
 
 @pytest.fixture(scope="module")
 def fresh_loop(tmp_path_factory):
-    """40 consecutive frames of a fresh test loop of the campus (a visit seed never used for training)."""
+    """A fresh test loop of the campus (175 frames of a visit seed never used for training or validation)."""
     out = tmp_path_factory.mktemp("shipped") / "campus"
     render_dataset(out, scene="campus", seed=202, train_loops=0, test_loops=1, frames_per_loop=175, progress=False)
     index = open_dataset(out, "deeploc", "test")
-    return [index.load(i) for i in range(40)]
+    return [index.load(i) for i in range(len(index))]
 
 
 def score(checkpoint: Path, frames) -> dict:
@@ -67,3 +68,19 @@ def test_shipped_model_beats_an_untrained_one(fresh_loop, tmp_path):
     assert good["vo"] < bad["vo"] / 3, (good, bad)
     assert good["r"] < bad["r"] / 4, (good, bad)
     assert good["t"] < bad["t"] / 2, (good, bad)
+
+
+def test_the_shipped_retrieval_baseline_is_computed_from_the_training_images(fresh_loop):
+    """The reference beside the model holds the descriptors of its training images (at least as many as the sidecar
+    says its last stage trained on) and retrieves, for each fresh frame, the pose of one of them: the README's baseline row."""
+    from vlocnetpp_core.checkpoint import read_checkpoint_meta
+    from vlocnetpp_core.retrieval import ReferenceSet, describe, reference_of
+
+    shipped = shipped_checkpoint()
+    reference = ReferenceSet.load(reference_of(shipped))
+    assert len(reference) >= read_checkpoint_meta(shipped)["training"]["train_frames"] > 1000
+    t, q = reference.poses(np.stack([describe(f.image) for f in fresh_loop]))
+    assert {tuple(p) for p in t} <= {tuple(p) for p in reference.t}  # each answer is a training pose
+    errors = [geometry.translation_error(ti, f.t) for ti, f in zip(t, fresh_loop, strict=True)]
+    assert len({tuple(p) for p in t}) > len(fresh_loop) // 4  # it follows the loop, not one place
+    assert float(np.median(errors)) < 3.0

@@ -160,9 +160,10 @@ def _flag_args(flags: dict, recipe: Recipe, out: Path) -> list[str]:
 
 
 def stage_step(run_dir: Path) -> int:
-    """The step a stage's run folder has reached (0 when it has not started)."""
+    """The step a stage's run folder has reached (-1 when it has not started; a 0-step run, e.g. ``mtl``
+    assembled from its single-task stages, has reached 0)."""
     state = run_dir / "train_state.json"
-    return int(json.loads(state.read_text())["step"]) if state.is_file() else 0
+    return int(json.loads(state.read_text())["step"]) if state.is_file() else -1
 
 
 def stage_commands(stage: Stage, recipe: Recipe, out: Path, python: str = sys.executable) -> list[list[str]]:

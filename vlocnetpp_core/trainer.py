@@ -94,7 +94,7 @@ class Trainer:
         if not (math.isfinite(self.crop_scale) and self.crop_scale >= 1.0):
             raise UserError(f"--crop-scale must be >= 1, got {self.crop_scale}")
         transform = make_transform(True, self.size, scale=(1.0, self.crop_scale))
-        cache_size = (round(self.size[0] * self.crop_scale), round(self.size[1] * self.crop_scale))
+        cache_size = (round(self.size[0] * self.crop_scale), round(self.size[1] * self.crop_scale)) if args.steps != 0 else None
         seg = "seg" in self.tasks  # depth and labels are decoded only for a run that trains segmentation
         self.train_clips = training_clips(self.train_index, args.clip_len, transform, args.frame_strides, seg, cache_size, self.log)
         if len(self.train_clips) == 0:
