@@ -64,7 +64,7 @@ from vlocnetpp_core.errors import UserError
 from vlocnetpp_core.extrinsics import IDENTITY_VALUES, CameraExtrinsics, to_base_frame
 from vlocnetpp_core.localizer import BACKENDS, Localizer
 from vlocnetpp_core.preprocess import FrameError
-from vlocnetpp_core.threads import use_threads
+from vlocnetpp_core.threads import resolve_threads, use_threads
 from vlocnetpp_ros import conversions
 from vlocnetpp_ros.diagnostics import NodeStats, ThrottledLog
 from vlocnetpp_ros.mailbox import LatestMailbox
@@ -148,7 +148,7 @@ class LocalizerNode(Node):
         _check_parameters(p)
         self.extrinsics = _extrinsics(p)
         checkpoint = Path(p["checkpoint"]) if p["checkpoint"] else default_checkpoint()
-        self.localizer = Localizer.from_checkpoint(checkpoint, device=p["device"], max_gap_s=p["max_gap_s"], num_threads=use_threads(p["num_threads"]),
+        self.localizer = Localizer.from_checkpoint(checkpoint, device=p["device"], max_gap_s=p["max_gap_s"], num_threads=resolve_threads(p["num_threads"]),
                                                    backend=p["backend"])
         w, h = self.localizer.input_size
         self.stats = NodeStats(info={"checkpoint": str(checkpoint), "device": str(p["device"]), "backend": p["backend"], "input_size": f"{w}x{h}"})
@@ -360,6 +360,7 @@ def main(args: list[str] | None = None) -> int:
     code = 0
     try:
         node = LocalizerNode()
+        use_threads(node.params["num_threads"])  # torch's threads are the process's: set by the program, not the node
         # Everything loaded so far (torch, the model) lives until exit: keep it out of the garbage
         # collector's scans. Fewer pauses while streaming, and exit after a signal takes ~0.2 s
         # instead of ~1 s (finalisation otherwise walks every torch object).
