@@ -108,7 +108,7 @@ def test_mtl_backward_reaches_every_parameter():
     dead = [n for n, p in model.named_parameters() if p.grad is None or p.grad.abs().sum() == 0]
     assert dead == []
     dead_weights = [n for n, p in criterion.named_parameters() if p.grad is None or p.grad == 0]
-    assert dead_weights == [] and len(list(criterion.parameters())) == 8
+    assert dead_weights == [] and len(list(criterion.parameters())) == 6  # s_x, s_q (shared with the consistency terms), s_x_vo, s_q_vo, s_seg, s_depth
 
 
 def test_stage_helpers_partition_the_parameters(model):
