@@ -50,7 +50,6 @@ from vlocnetpp_core.bag.topics import (
 )
 from vlocnetpp_core.classes import CLASS_NAMES
 from vlocnetpp_core.errors import DataError, UserError
-from vlocnetpp_core.extrinsics import CameraExtrinsics
 from vlocnetpp_core.geometry import matrix_to_quat, pose_to_matrix
 from vlocnetpp_core.metrics import SequenceResult, confusion_matrix, evaluate_sequences
 from vlocnetpp_core.report import (
@@ -95,11 +94,6 @@ class GroundTruth:
         return [TF_TOPIC, TF_STATIC_TOPIC] if self.tf is not None else [self.topic]
 
 
-def _pose_of(msg) -> tuple[np.ndarray, np.ndarray]:
-    pose = msg.pose.pose if hasattr(msg.pose, "pose") else msg.pose  # Odometry / PoseWithCovarianceStamped / PoseStamped
-    return messages.pose_from_msg(pose)
-
-
 def split_on_gaps(stamps_ns: np.ndarray, max_gap_s: float) -> list[range]:
     """Contiguous ranges of sorted stamps; a new range starts after a gap longer than ``max_gap_s``."""
     if len(stamps_ns) == 0:
@@ -114,19 +108,21 @@ def read_matched_frames(reader: BagReader, ground_truth: GroundTruth = GroundTru
     for topic in (ground_truth.topics[0], POSE_TOPIC):
         if topic not in reader.topics:
             raise DataError(reader.path, f"no {topic} topic (topics: {', '.join(sorted(reader.topics)) or 'none'})")
-    poses: dict[str, dict[int, tuple[np.ndarray, np.ndarray]]] = {POSE_TOPIC: {}, ODOMETRY_TOPIC: {}, ground_truth.topic: {}}
+    from_tf = ground_truth.tf is not None
+    pose_topics = [POSE_TOPIC, ODOMETRY_TOPIC] if from_tf else [POSE_TOPIC, ODOMETRY_TOPIC, ground_truth.topic]
+    poses: dict[str, dict[int, tuple[np.ndarray, np.ndarray]]] = {t: {} for t in pose_topics}
     tf = TfCollector()
-    for topic, _, msg in reader.messages([*poses, *ground_truth.topics]):
-        if ground_truth.tf is not None and topic in (TF_TOPIC, TF_STATIC_TOPIC):
+    for topic, _, msg in reader.messages({*pose_topics, *ground_truth.topics}):
+        if topic in poses:
+            poses[topic][messages.stamp_ns(msg)] = messages.stamped_pose(msg)
+        else:
             tf.add(msg, static=topic == TF_STATIC_TOPIC)
-        elif topic in poses:
-            poses[topic][messages.stamp_ns(msg)] = _pose_of(msg)
     pred, odom = poses[POSE_TOPIC], poses[ODOMETRY_TOPIC]
-    gt = poses[ground_truth.topic] if ground_truth.tf is None else _tf_poses_at(tf, ground_truth, sorted(pred))
+    gt = _tf_poses_at(tf, ground_truth, sorted(pred)) if from_tf else poses[ground_truth.topic]
     stamps = np.array(sorted(gt.keys() & pred.keys()), dtype=np.int64)
     if len(stamps) == 0:
         raise DataError(reader.path, f"no {POSE_TOPIC} message has the stamp of a ground-truth pose "
-                                     f"({ground_truth.topic if ground_truth.tf is None else 'TF ' + ' -> '.join(ground_truth.tf)})")
+                                     f"({'TF ' + ' -> '.join(ground_truth.tf) if from_tf else ground_truth.topic})")
     nan_pose = (np.full(3, np.nan), np.full(4, np.nan))
 
     def column(source, part, width):
@@ -273,10 +269,9 @@ def ground_truth_of(args: argparse.Namespace) -> GroundTruth:
     """The :class:`GroundTruth` of the command line (``--camera-extrinsics`` checked as the node's)."""
     if args.tf is None and args.camera_extrinsics is not None:
         raise UserError("--camera-extrinsics applies with --tf PARENT CHILD (a ground-truth topic holds camera poses)")
-    extrinsics = None
-    if args.camera_extrinsics is not None:
-        ext = CameraExtrinsics.from_text(args.camera_extrinsics, "--camera-extrinsics")
-        extrinsics = (ext.t, ext.q)
+    from vlocnetpp_core.bag.extract import parse_extrinsics
+
+    extrinsics = parse_extrinsics(args.camera_extrinsics) if args.camera_extrinsics is not None else None
     return GroundTruth(args.ground_truth_topic, tuple(args.tf) if args.tf else None, extrinsics, args.max_pose_gap)
 
 

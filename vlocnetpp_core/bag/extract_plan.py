@@ -67,12 +67,6 @@ class Plan:
     frames: list[PlannedFrame] = field(default_factory=list)
     skipped: Counter = field(default_factory=Counter)
 
-    def sequences(self, split: str) -> int:
-        return len({f.sequence for f in self.frames if f.split == split})
-
-    def count(self, split: str) -> int:
-        return sum(f.split == split for f in self.frames)
-
 
 def in_ranges(rel_s: np.ndarray, ranges: tuple[tuple[float, float], ...]) -> np.ndarray:
     """Boolean ``(N,)``: ``rel_s`` in any ``[a, b)`` of ``ranges``."""

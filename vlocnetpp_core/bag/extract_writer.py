@@ -21,19 +21,17 @@ from __future__ import annotations
 import json
 import os
 import shutil
-from collections import deque
 from collections.abc import Iterator
-from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import contextmanager
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from vlocnetpp_core.bag.bagfile import remove_stale_temps, temp_dir_for
 from vlocnetpp_core.bag.extract_plan import PlannedFrame
+from vlocnetpp_core.data.imageio import BackgroundWriter, write_image
 from vlocnetpp_core.data.pfm import write_pfm
-from vlocnetpp_core.errors import DataError, UserError
+from vlocnetpp_core.errors import UserError
 from vlocnetpp_core.intrinsics import Intrinsics
 
 
@@ -72,20 +70,13 @@ def atomic_output_dir(out: str | Path, force: bool = False) -> Iterator[Path]:
         shutil.rmtree(tmp, ignore_errors=True)
 
 
-def _imwrite(path: Path, img: np.ndarray) -> None:
-    if not cv2.imwrite(str(path), np.ascontiguousarray(img)):
-        raise DataError(path, "could not write the image (disk full or no permission?)")
-
-
 class DeepLocWriter:
     """Writes images and depth of :class:`PlannedFrame` s under ``root`` (module doc) on background threads
     (PNG encoding releases the GIL), at most ``max_pending`` files in flight; :meth:`finish` writes the index."""
 
     def __init__(self, root: Path, threads: int = 2, max_pending: int = 8):
         self.root = Path(root)
-        self._pool = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="extract-writer")
-        self._pending: deque[Future] = deque()
-        self._max = max_pending
+        self._files = BackgroundWriter(threads, max_pending, "extract-writer")
         self.images: set[tuple[str, int]] = set()  # (split, id) of the images written
         self.depths: dict[tuple[str, int], Path] = {}  # (split, id) -> depth file written
 
@@ -94,14 +85,9 @@ class DeepLocWriter:
         d.mkdir(parents=True, exist_ok=True)
         return d
 
-    def _submit(self, fn, *args) -> None:
-        self._pending.append(self._pool.submit(fn, *args))
-        while len(self._pending) > self._max:
-            self._pending.popleft().result()  # re-raises a failed write
-
     def image(self, frame: PlannedFrame, rgb: np.ndarray) -> None:
         """``rgb (H, W, 3) uint8`` as ``LeftImages/Image_<id>.png``."""
-        self._submit(_imwrite, self._dir("DeepLoc", frame.split, "LeftImages") / frame.name, rgb[..., ::-1])
+        self._files.submit(write_image, self._dir("DeepLoc", frame.split, "LeftImages") / frame.name, rgb[..., ::-1])
         self.images.add((frame.split, frame.id))
 
     def depth(self, frame: PlannedFrame, depth: np.ndarray) -> None:
@@ -109,21 +95,18 @@ class DeepLocWriter:
         folder = self._dir("DeepLoc_stereo", frame.split, "DepthImages")
         if depth.dtype == np.uint16:
             path = folder / f"Image_{frame.id}.png"
-            self._submit(_imwrite, path, depth)
+            self._files.submit(write_image, path, depth)
         else:
             path = folder / f"Image_{frame.id}.pfm"
-            self._submit(write_pfm, path, depth.astype(np.float32))
+            self._files.submit(write_pfm, path, depth.astype(np.float32))
         self.depths[(frame.split, frame.id)] = path
 
     def close(self) -> None:
         """Wait for every pending file (re-raising the first failure)."""
         try:
-            while self._pending:
-                self._pending.popleft().result()
+            self._files.finish()
         finally:
-            for f in self._pending:
-                f.cancel()
-            self._pool.shutdown(wait=True)
+            self._files.close()
 
     def finish(self, frames: list[PlannedFrame], K: Intrinsics, provenance: dict) -> list[PlannedFrame]:
         """Write ``poses.txt`` and ``stamps.txt`` per split for the frames whose image was written,

@@ -168,6 +168,12 @@ def pose_from_msg(pose: Any) -> tuple[np.ndarray, np.ndarray]:
     return np.array([p.x, p.y, p.z], dtype=np.float64), (-q if q[0] < 0 else q)
 
 
+def stamped_pose(msg: Any) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`pose_from_msg` of a ``PoseStamped``, ``PoseWithCovarianceStamped`` or ``Odometry`` message."""
+    pose = msg.pose.pose if hasattr(msg.pose, "pose") else msg.pose
+    return pose_from_msg(pose)
+
+
 def transform_stamped(ns: int, parent: str, child: str, t: np.ndarray, q_wxyz: np.ndarray) -> Any:
     """``geometry_msgs/TransformStamped`` of ``T_parent,child`` (``t`` metres, ``q`` core order ``(w, x, y, z)``)."""
     t = np.asarray(t, dtype=np.float64)

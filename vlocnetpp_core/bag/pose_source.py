@@ -162,8 +162,7 @@ class PoseTopicCollector:
 
     def add(self, msg) -> None:
         """One message (its ``header.stamp`` is the sample's time)."""
-        pose = msg.pose if msg.__msgtype__ == messages.POSE_STAMPED else msg.pose.pose
-        t, q = messages.pose_from_msg(pose)
+        t, q = messages.stamped_pose(msg)
         self.stamps.append(messages.stamp_ns(msg))
         self.t.append(t)
         self.q.append(q)

@@ -18,9 +18,8 @@ latest ``/camera/camera_info``; the localizer resets its temporal state itself o
 longer than ``--max-gap-s`` (the converter leaves 10 s between sequences). Messages that share a
 log time are handled together, so a frame's camera info or depth is used whatever order the bag
 stores them in. With ``--through-node`` the real ROS node runs as a subprocess and the bag is
-played to it over DDS by the ``replay-node`` program of the ROS package (:mod:`vlocnetpp_core.programs`) (a ROS program of its own: this
-module never imports ROS); both paths give
-the same poses for the same frames.
+played to it over DDS by the ROS package's ``replay-node`` program (:mod:`vlocnetpp_core.programs`;
+this module never imports ROS); both paths give the same poses for the same frames.
 
 Frames the localizer rejects (unsupported encoding, truncated data, ...) are skipped and counted.
 The output is written like the converter's: one ``.mcap`` file, renamed into place when complete.

@@ -10,6 +10,9 @@ All readers use ``cv2.imread(..., IMREAD_UNCHANGED)`` (no PIL) and return numpy 
 
 from __future__ import annotations
 
+from collections import deque
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
 import cv2
@@ -93,3 +96,36 @@ def read_depth(path: str | Path, shape: tuple[int, int] | None = None) -> np.nda
             raise DataError(p, f"expected 16-bit depth in millimetres (or float metres), got {raw.dtype}")
     _check_size(p, depth, shape, "depth map")
     return depth
+
+
+def write_image(path: str | Path, img: np.ndarray) -> None:
+    """Write ``img`` with OpenCV (colour in BGR order; 16-bit PNG for uint16); ``DataError`` naming the file on failure."""
+    if not cv2.imwrite(str(path), np.ascontiguousarray(img)):
+        raise DataError(path, "could not write the image (disk full or no permission?)")
+
+
+class BackgroundWriter:
+    """Runs file writes on ``threads`` worker threads (PNG encoding releases the GIL) while the caller makes the
+    next frame, with at most ``max_pending`` writes in flight (``submit`` then waits for the oldest)."""
+
+    def __init__(self, threads: int = 1, max_pending: int = 8, name: str = "writer"):
+        self._pool = ThreadPoolExecutor(max_workers=threads, thread_name_prefix=name)
+        self._pending: deque[Future] = deque()
+        self._max = max_pending
+
+    def submit(self, fn: Callable[..., object], *args) -> None:
+        """Run ``fn(*args)`` in the background; re-raises the failure of an earlier write."""
+        self._pending.append(self._pool.submit(fn, *args))
+        while len(self._pending) > self._max:
+            self._pending.popleft().result()
+
+    def finish(self) -> None:
+        """Wait for every pending write, re-raising the first failure."""
+        while self._pending:
+            self._pending.popleft().result()
+
+    def close(self) -> None:
+        """Cancel what has not started and stop the threads (after :meth:`finish`, or on an error)."""
+        for f in self._pending:
+            f.cancel()
+        self._pool.shutdown(wait=True)

@@ -23,16 +23,14 @@ import re
 import shutil
 import tempfile
 import time
-from collections import deque
-from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from vlocnetpp_core.classes import colorize
+from vlocnetpp_core.data.imageio import BackgroundWriter, write_image
 from vlocnetpp_core.data.pfm import write_pfm
-from vlocnetpp_core.errors import DataError, UserError
+from vlocnetpp_core.errors import UserError
 from vlocnetpp_core.intrinsics import Intrinsics
 from vlocnetpp_core.synth.campus import load_campus
 from vlocnetpp_core.synth.drive import plan_visit
@@ -146,7 +144,7 @@ def _render_into(root: Path, scene: str, seed: int, train_loops: int, test_loops
     samples = []
     trajectories = []
     bar = tqdm(total=total, disable=not progress, unit="frame", desc=f"synth {scene}", dynamic_ncols=True)
-    writer = _BackgroundWriter()
+    writer = BackgroundWriter(name="synth-writer")
     try:
         for split, n_loops in loops.items():
             if n_loops == 0:
@@ -175,7 +173,7 @@ def _render_into(root: Path, scene: str, seed: int, train_loops: int, test_loops
                     render_time += time.perf_counter() - t0
                     files = ((img_dir / f"{name}.png", rgb[..., ::-1]), (lab_dir / f"{name}.png", labels),
                              (col_dir / f"{name}.png", colorize(labels)[..., ::-1]), (dep_dir / f"{name}.pfm", depth))
-                    writer.put(files)
+                    writer.submit(_write_files, files)
                     lines.append(line)
                     if loop * frames + i in picks:
                         samples.append((f"{split} loop {loop} {name}", rgb, labels, depth))
@@ -207,8 +205,8 @@ def _write_scene_info(root: Path, campus, samples: list, trajectories: list, inf
     ``scene.json`` (generator, ``info``, landmarks)."""
     preview = root / "preview"
     preview.mkdir()
-    _imwrite(preview / "mosaic.png", mosaic(samples)[..., ::-1])
-    _imwrite(preview / "map.png", top_down_map(campus, trajectories)[..., ::-1])
+    write_image(preview / "mosaic.png", mosaic(samples)[..., ::-1])
+    write_image(preview / "map.png", top_down_map(campus, trajectories)[..., ::-1])
     scene_info = {
         "generator": "vlocnetpp synthetic campus",
         "generator_version": GENERATOR_VERSION,
@@ -219,37 +217,9 @@ def _write_scene_info(root: Path, campus, samples: list, trajectories: list, inf
     (root / "scene.json").write_text(json.dumps(scene_info, indent=2, sort_keys=True) + "\n")
 
 
-class _BackgroundWriter:
-    """Encodes and writes frame files on one worker thread while the next frame renders (cv2 releases the GIL)."""
-
-    def __init__(self, max_pending: int = 8):
-        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="synth-writer")
-        self._pending: deque[Future] = deque()
-        self._max = max_pending
-
-    def put(self, files: tuple[tuple[Path, np.ndarray], ...]) -> None:
-        self._pending.append(self._pool.submit(_write_files, files))
-        while len(self._pending) > self._max:
-            self._pending.popleft().result()  # re-raises a failed write
-
-    def finish(self) -> None:
-        while self._pending:
-            self._pending.popleft().result()
-
-    def close(self) -> None:
-        for f in self._pending:
-            f.cancel()
-        self._pool.shutdown(wait=True)
-
-
 def _write_files(files: tuple[tuple[Path, np.ndarray], ...]) -> None:
     for path, arr in files:
         if path.suffix == ".pfm":
             write_pfm(path, arr)
         else:
-            _imwrite(path, arr)
-
-
-def _imwrite(path: Path, img: np.ndarray) -> None:
-    if not cv2.imwrite(str(path), np.ascontiguousarray(img)):
-        raise DataError(path, "could not write the image (disk full or no permission?)")
+            write_image(path, arr)
