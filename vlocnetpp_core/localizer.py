@@ -127,9 +127,9 @@ class Localizer:
 
     @property
     def has_segmentation(self) -> bool:
-        """Whether the loaded model produces a class-id mask (:attr:`LocalizerResult.mask` not None): it has a
-        semantic stream (``model.semantic``) and at least one class. False for a pose-only model (``lite_pose``)."""
-        return getattr(self.model, "semantic", None) is not None and self.num_classes > 0
+        """Whether the loaded model produces a class-id mask (:attr:`LocalizerResult.mask` not None): its config
+        runs ``seg`` (the rule replay's ``checkpoint_output_types`` reads too). False for a pose-only model (``lite_pose``)."""
+        return "seg" in self.model.config.tasks
 
     def reset(self, reason: str = "request", clear_odometry: bool = False) -> None:
         """Forget the temporal state; the next frame is a first frame reported with ``reason``.
