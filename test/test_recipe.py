@@ -26,7 +26,7 @@ def _recipe(tmp_path, **changes) -> dict:
             {"name": "vo", "stage": "stl-vo", "schedule": [{"steps": 2, "lr": 1e-3}], "parallel": "a", "threads": 1},
             {"name": "seg", "stage": "stl-seg", "schedule": [{"steps": 2, "lr": 1e-3}], "parallel": "a", "threads": 1},
             {"name": "loc", "stage": "stl-loc", "init": ["vo"], "s_q_init": 0,
-             "schedule": [{"steps": 2, "lr": 1e-3}, {"steps": 3, "lr": 1e-4}]},
+             "schedule": [{"steps": 2, "lr": 1e-3}, {"steps": 4, "lr": 1e-4, "lr_end": 1e-6}]},
             {"name": "seg-more", "stage": "stl-seg", "continue": "seg", "schedule": [{"steps": 3, "lr": 1e-3}]},
         ],
         "export": {"stage": "loc", "to": str(tmp_path / "models" / "tiny"), "dtype": "float16", "reference": "campus"},
@@ -47,7 +47,9 @@ def test_recipe_runs_every_stage_exports_and_resumes(tmp_path, capsys):
     more = [json.loads(line) for line in (out / "seg-more" / "log.jsonl").read_text().splitlines() if "validation" not in line]
     assert [r["step"] for r in more] == [1, 2, 3]  # seg's two steps (its copied run), then one more, resumed
     log = [json.loads(line) for line in (out / "loc" / "log.jsonl").read_text().splitlines() if "validation" not in line]
-    assert [(r["step"], r["lr"]) for r in log] == [(1, 1e-3), (2, 1e-3), (3, 1e-4)]  # the schedule, resumed at the step-down
+    # the schedule, resumed at the step-down; the second entry a cosine from 1e-4 at step 2 to 1e-6 at step 4
+    assert [r["step"] for r in log] == [1, 2, 3, 4]
+    assert [r["lr"] for r in log] == pytest.approx([1e-3, 1e-3, 1e-4, (1e-4 + 1e-6) / 2], rel=1e-9)
     meta = read_checkpoint_meta(tmp_path / "models" / "tiny")
     assert meta["training"]["stage"] == "stl-loc" and meta["training"]["init"][0]["path"].endswith("vo/best.safetensors")
     reference = ReferenceSet.load(tmp_path / "models" / "tiny.reference.npz")
@@ -67,7 +69,8 @@ def test_recipe_resumes_an_unfinished_schedule(tmp_path):
     (out / "loc").mkdir(parents=True)
     (out / "loc" / "train_state.json").write_text(json.dumps({"step": 2}))
     (command,) = stage_commands(loc, recipe, out)
-    assert command[command.index("--steps") + 1] == "3" and command[command.index("--lr") + 1] == "0.0001" and "--resume" in command
+    assert command[command.index("--steps") + 1] == "4" and command[command.index("--lr") + 1] == "0.0001" and "--resume" in command
+    assert command[command.index("--lr-end") + 1] == "1e-06"
     assert command.count("--init") == 1 and command[command.index("--init") + 1] == str(out / "vo" / "best.safetensors")
 
 

@@ -229,6 +229,24 @@ def test_mtl_assembled_without_steps_is_exactly_its_stages(tiny, stage_runs, tmp
                 torch.testing.assert_close(out.seg_logits, ref["stl-seg"].seg_logits, rtol=0, atol=1e-5)
 
 
+def test_a_cosine_run_anneals_each_step_and_a_resume_continues_its_curve(tiny, tmp_path):
+    """--lr-end: the rate of every logged step follows the half cosine; resuming the finished run with the same
+    flags keeps the saved phase, with more --steps it starts a new one at the resumed step."""
+    from vlocnetpp_core.cli import build_parser
+    from vlocnetpp_core.lr_schedule import LearningRatePhase
+    from vlocnetpp_core.trainer import Trainer
+
+    data, config = tiny
+    out = tmp_path / "cosine"
+    log = train(data, config, out, "stl-loc", 6, "--lr", "1e-3", "--lr-end", "1e-5", "--threads", "1")
+    curve = LearningRatePhase(0, 1e-3, 1e-5, 6)
+    assert [r["lr"] for r in steps_of(log)] == pytest.approx([curve.at(s) for s in range(6)], rel=1e-9)
+    base = ["train", "--config", str(config), "--data", str(data), "--stage", "stl-loc", "--out", str(out), "--batch-size", "2",
+            "--clip-len", "2", "--workers", "0", "--no-progress", "--threads", "1", "--resume", "--lr", "1e-3", "--lr-end", "1e-5"]
+    assert Trainer(build_parser("train").parse_args([*base, "--steps", "6"])).phase == curve
+    assert Trainer(build_parser("train").parse_args([*base, "--steps", "10"])).phase == LearningRatePhase(6, 1e-3, 1e-5, 10)
+
+
 def _train_cmd(data: Path, config: Path, out: Path, steps: int) -> list[str]:
     return [sys.executable, "-m", "vlocnetpp_core.train", "--config", str(config), "--data", str(data), "--stage", "mtl",
             "--out", str(out), "--steps", str(steps), "--batch-size", "2", "--clip-len", "2", "--workers", "0",

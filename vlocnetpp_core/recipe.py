@@ -15,7 +15,8 @@ weights. Example (``config/recipes/shipped.yaml`` is the shipped model's)::
     export: {stage: stl-loc, to: models/my_model, dtype: float16, reference: campus}
 
 Stage keys: ``name`` (run folder), ``stage``, ``schedule`` (list of ``{steps, lr}``: train to
-``steps`` in total at ``lr``, resuming from the previous entry), ``init`` (stage names: their
+``steps`` in total at ``lr``, resuming from the previous entry; with ``lr_end: R`` the rate falls
+from ``lr`` to ``R`` along a half cosine over the entry, ``vlocnetpp train --lr-end``), ``init`` (stage names: their
 ``best`` weights, in order), ``continue`` (a stage name: start as a copy of that stage's run
 folder and resume it, e.g. to use a stage's early weights as another's init and train it on),
 ``data`` / ``val_data`` (dataset names), ``parallel`` (stages with
@@ -56,7 +57,7 @@ class Stage:
 
     name: str
     stage: str
-    schedule: list[tuple[int, float]]
+    schedule: list[tuple[int, float, float | None]]
     init: list[str] = field(default_factory=list)
     flags: dict = field(default_factory=dict)
     parallel: str | None = None
@@ -95,9 +96,9 @@ def load_recipe(path: str | Path) -> Recipe:
             if key not in entry:
                 raise UserError(f"{where}: missing '{key}'")
         try:
-            schedule = [(int(s["steps"]), float(s["lr"])) for s in entry["schedule"]]
-        except (TypeError, KeyError, ValueError):
-            raise UserError(f"{where}: 'schedule' must be a list of {{steps: N, lr: R}}") from None
+            schedule = [(int(s["steps"]), float(s["lr"]), None if s.get("lr_end") is None else float(s["lr_end"])) for s in entry["schedule"]]
+        except (TypeError, KeyError, ValueError, AttributeError):
+            raise UserError(f"{where}: 'schedule' must be a list of {{steps: N, lr: R}} (optionally lr_end: R, a cosine to R)") from None
         if not schedule or any(b[0] < a[0] for a, b in zip(schedule[:-1], schedule[1:], strict=True)):
             raise UserError(f"{where}: 'schedule' steps must be given in increasing order")
         for ref in [*(entry.get("init") or []), *([entry["continue"]] if "continue" in entry else [])]:
@@ -175,11 +176,12 @@ def stage_commands(stage: Stage, recipe: Recipe, out: Path, python: str = sys.ex
     for ref in stage.init:
         base += ["--init", str(out / ref / "best.safetensors")]
     commands = []
-    for steps, lr in stage.schedule:
+    for steps, lr, lr_end in stage.schedule:
         if done >= steps:
             continue
         resume = ["--resume"] if done > 0 or commands else []
-        commands.append([*base, "--steps", str(steps), "--lr", f"{lr:g}", *resume])
+        anneal = [] if lr_end is None else ["--lr-end", f"{lr_end:g}"]
+        commands.append([*base, "--steps", str(steps), "--lr", f"{lr:g}", *anneal, *resume])
         done = steps
     return commands
 

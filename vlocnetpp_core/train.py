@@ -63,6 +63,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--lr", type=float,
                    help="learning rate (default: 1e-3 single-task, 1e-4 mtl, as in the paper; with --resume: the run's, "
                         "or this one from the resumed step on)")
+    p.add_argument("--lr-end", type=float, default=None, metavar="R",
+                   help="anneal the rate along a half cosine from --lr to R at --steps (default: constant); resumed with the "
+                        "same --lr, --lr-end and --steps it continues the same curve")
     p.add_argument("--crop-scale", type=float, default=None, metavar="S",
                    help="geometric augmentation: zoom by a random factor in [1, S], then crop the input size at a random place "
                         "(default: 1.15 for stl-seg; 1, none, for the stages with pose losses, whose targets a crop would falsify: "

@@ -23,6 +23,7 @@ import torch.distributed as dist
 
 from vlocnetpp_core.errors import UserError
 from vlocnetpp_core.losses import selection_score
+from vlocnetpp_core.lr_schedule import LearningRatePhase
 from vlocnetpp_core.model.assembly import builds_semantic_fusion, frozen_trunk, init_rule, init_tensors
 from vlocnetpp_core.model.stages import stage_tasks
 from vlocnetpp_core.threads import use_threads
@@ -41,6 +42,7 @@ class Trainer:
         self._setup_data()
         self._setup_model()
         self.step, self.best, self.reference, self.calibration = 0, math.inf, None, None
+        self.phase = LearningRatePhase(0, self.lr, args.lr_end, self.total)
         if args.resume:
             self._resume()
         self.net = torch.nn.parallel.DistributedDataParallel(self.model, find_unused_parameters=True) if self.distributed else self.model
@@ -152,12 +154,10 @@ class Trainer:
         self.model.load_state_dict({k: v.to(self.device) for k, v in tensors.items()})
         self.step, self.reference = int(meta["step"]), meta.get("best_reference")
         saved_lr = self.optimizer.param_groups[0]["lr"]
-        if args.lr is None:
-            self.lr = saved_lr
-        elif args.lr != saved_lr:  # a step-down for the last part of a run: --resume --lr 1e-4
-            for group in self.optimizer.param_groups:
-                group["lr"] = args.lr
-            self.log(f"learning rate {saved_lr:g} -> {args.lr:g} from step {self.step}")
+        self.lr = saved_lr if args.lr is None else args.lr  # --resume --lr 1e-4: a step-down for the last part of a run
+        self.phase = LearningRatePhase(self.step, self.lr, args.lr_end, self.total).continues(meta.get("lr_phase"))
+        if self.phase.start == self.step and self.phase.at(self.step) != saved_lr:
+            self.log(f"learning rate {saved_lr:g} -> {self.phase.at(self.step):g} from step {self.step}")
         self.best = float(meta.get("best", math.inf))
         self.log(f"resumed at step {self.step}")
 
@@ -210,6 +210,8 @@ class Trainer:
         loss, parts = self.criterion(forward_stage(self.net, batch, self.args.stage), batch)
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
+        for group in self.optimizer.param_groups:
+            group["lr"] = self.phase.at(self.step)
         self.optimizer.step()
         self.step += 1
         return {"step": self.step, "epoch": epoch, "lr": self.optimizer.param_groups[0]["lr"], "loss": float(loss.detach()),
@@ -249,7 +251,8 @@ class Trainer:
         if is_best:
             save_checkpoint(self.out / "best", self.model, meta)
         save_train_state(self.out, step=self.step, optimizer=self.optimizer, criterion=self.criterion,
-                         extra={"best": self.best, "best_reference": self.reference, "args": _jsonable_args(self.args)})
+                         extra={"best": self.best, "best_reference": self.reference, "lr_phase": self.phase.to_dict(),
+                                "args": _jsonable_args(self.args)})
 
     def summary(self) -> dict:
         """The ``training`` entry of the checkpoint sidecars."""
@@ -258,7 +261,7 @@ class Trainer:
             "stage": args.stage, "data": str(args.data), "train_frames": len(self.train_index), "train_sequences": len(self.train_index.sequences),
             "train_clips": len(self.train_clips), "frame_strides": list(args.frame_strides),
             "val_frames": len(self.val_index) if self.val_index is not None else 0, "clip_len": args.clip_len,
-            "batch_size": args.batch_size, "lr": self.lr, "s_q_init": args.s_q_init, "crop_scale": self.crop_scale, "world_size": self.world,
+            "batch_size": args.batch_size, "lr": self.lr, "lr_end": args.lr_end, "s_q_init": args.s_q_init, "crop_scale": self.crop_scale, "world_size": self.world,
             "init": self.sources, "seed": args.seed,
         }
 
