@@ -18,7 +18,7 @@ def test_the_cosine_starts_at_lr_falls_monotonically_and_reaches_the_end_at_tota
     phase = LearningRatePhase(start=200, lr=1e-3, end=1e-5, total=1200)
     rates = [phase.at(s) for s in range(200, 1201)]
     assert rates[0] == pytest.approx(1e-3) and rates[-1] == pytest.approx(1e-5)
-    assert all(b < a for a, b in zip(rates[:-1], rates[1:]))
+    assert all(b < a for a, b in zip(rates[:-1], rates[1:], strict=True))
     assert phase.at(700) == pytest.approx(1e-5 + (1e-3 - 1e-5) * 0.5)  # half way: the mean of the two rates
     assert phase.at(450) == pytest.approx(1e-5 + (1e-3 - 1e-5) * 0.5 * (1 + math.cos(math.pi / 4)))
     assert phase.at(5000) == pytest.approx(1e-5)  # past the end (a run trained on with another --steps starts a new phase)
