@@ -177,7 +177,7 @@ def test_mtl_semantic_fusion_starts_as_an_identity(tiny, stage_runs):
     from vlocnetpp_core.data import ClipDataset, make_transform, open_dataset
     from vlocnetpp_core.losses import VLocNetLoss
     from vlocnetpp_core.model import VLocNetPP
-    from vlocnetpp_core.trainer import load_inits
+    from vlocnetpp_core.train_init import load_inits
 
     data, config = tiny
     model = VLocNetPP(load_model_config(config))
