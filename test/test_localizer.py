@@ -11,7 +11,8 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from vlocnetpp_core import geometry
-from vlocnetpp_core.checkpoint import init_checkpoint
+from vlocnetpp_core.checkpoint import save_checkpoint
+from vlocnetpp_core.model import VLocNetPP, load_model_config
 from vlocnetpp_core.errors import DataError, UserError
 from vlocnetpp_core.intrinsics import Intrinsics
 from vlocnetpp_core.localizer import UNKNOWN_VARIANCE, Localizer
@@ -31,8 +32,20 @@ def _frames(n: int, seed: int = 0, size: tuple[int, int] = (H, W)) -> list[np.nd
 
 @pytest.fixture(scope="module")
 def checkpoint(tmp_path_factory) -> Path:
+    """An untrained lite network whose odometry head says "0.3 m forward, no rotation" for every frame pair.
+
+    A random odometry head can output any rotation (half a turn), which warps every previous-frame
+    feature out of view; a small known motion keeps the warp in view, so depth and intrinsics reach the pose.
+    """
     calib = {"pose_variance": POSE_VAR, "odometry_variance": ODO_VAR}
-    return init_checkpoint("lite", tmp_path_factory.mktemp("loc") / "lite", seed=1, meta={"calibration": calib})
+    torch.manual_seed(1)
+    model = VLocNetPP(load_model_config("lite"))
+    head = model.odometry.head
+    with torch.no_grad():
+        for fc in (head.fc_xyz, head.fc_quat):
+            fc.weight.mul_(1e-3)
+        head.fc_xyz.bias.copy_(torch.tensor([0.0, 0.0, 0.3]))
+    return save_checkpoint(tmp_path_factory.mktemp("loc") / "lite", model, {"calibration": calib})
 
 
 @pytest.fixture()

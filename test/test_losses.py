@@ -132,7 +132,7 @@ def test_optimiser_steps_drive_every_task_loss_down():
     """Real learning: the lite network at a tiny input overfits a fixed two-clip batch in MTL."""
     torch.manual_seed(0)
     W, H = 64, 32
-    model = VLocNetPP(lite(dropout=0.0)).train()
+    model = VLocNetPP(lite(dropout=0.0, input_size=(W, H))).train()
     crit = VLocNetLoss("mtl")
     batch = random_clip_batch(2, 2, W, H, seed=7)
     batch["labels"] = (torch.arange(W) * 4 // W).expand(2, 2, H, W).clone()  # four vertical bands: learnable

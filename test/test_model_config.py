@@ -57,6 +57,8 @@ def test_yaml_file_by_path_round_trips(tmp_path):
         ("warping: yes please\n", "expected true/false"),
         ("depths: [1, 1, 2, 1]\n", "res4_fusion_block"),
         ("input_size: [64\n", "not valid YAML"),
+        ("global_pose_pooling: max\n", "global_pose_pooling must be one of"),
+        ("global_downsample: 0\n", "global_downsample must be >= 1"),
     ],
 )
 def test_bad_config_files_name_the_file(tmp_path, text, message):

@@ -18,12 +18,15 @@ from vlocnetpp_core.model import STREAMS, ModelConfig, VLocNetPP, load_model_con
 
 def expected_taps(cfg: ModelConfig, batch: int, width: int, height: int) -> dict[str, tuple[int, ...]]:
     c1, c2, c3 = cfg.stage_channels[1:]
-    s8, s16 = (height // 8, width // 8), (height // 16, width // 16)
-    s32 = (math.ceil(height / 32), math.ceil(width / 32))  # stride-2 stages round up
+
+    def stride(s: int) -> tuple[int, int]:  # stride-2 layers and the pooling round up
+        return math.ceil(height / s), math.ceil(width / s)
+
+    s8, s16, p = (height // 8, width // 8), (height // 16, width // 16), cfg.global_downsample  # the global stream pools Res3 by p
     shapes = {
-        "res3": (c1, *s8), "res4c": (c2, *s16), "res4c_fused": (c2, *s16), "res4f": (c2, *s16),
-        "res5a": (c3, *s32), "res5a_fused": (c3, *s32), "res5c": (c3, *s32),
-        "odo_res4": (c2, *s16), "odo_res5": (c3, *s32),
+        "res3": (c1, *s8), "res4c": (c2, *stride(16 * p)), "res4c_fused": (c2, *stride(16 * p)), "res4f": (c2, *stride(16 * p)),
+        "res5a": (c3, *stride(32 * p)), "res5a_fused": (c3, *stride(32 * p)), "res5c": (c3, *stride(32 * p)),
+        "odo_res4": (c2, *s16), "odo_res5": (c3, *stride(32)),
         "sem_res3": (c1, *s8), "sem_res4f": (c2, *s16), "sem_res4f_warped": (c2, *s16), "sem_res4f_fused": (c2, *s16),
         "sem_res5c": (c3, *s16), "sem_res5c_warped": (c3, *s16), "sem_res5c_fused": (c3, *s16),
     }
@@ -51,20 +54,59 @@ def check_step_shapes(cfg: ModelConfig, width: int, height: int, batch: int = 2)
     assert state.sem_res4f.shape == out.taps["sem_res4f"].shape and state.sem_res5c.shape == out.taps["sem_res5c"].shape
 
 
-@pytest.mark.parametrize("size", [None, (208, 112), (160, 48)])
-def test_lite_shapes(size):
-    cfg = load_model_config("lite")
-    check_step_shapes(cfg, *(size or cfg.input_size))
+@pytest.mark.parametrize("size", [(224, 128), (208, 112), (160, 48)])
+@pytest.mark.parametrize("pooling", ["flatten", "average"])
+def test_lite_shapes(size, pooling):
+    check_step_shapes(lite(input_size=size, global_pose_pooling=pooling), *size)
 
 
 @pytest.mark.parametrize("size", [(96, 64), (80, 48)])
-def test_paper_shapes_at_small_sizes(size):
-    check_step_shapes(load_model_config("paper"), *size)
+@pytest.mark.parametrize("global_downsample", [1, 2])
+def test_paper_shapes_at_small_sizes(size, global_downsample):
+    check_step_shapes(dataclasses.replace(load_model_config("paper"), global_downsample=global_downsample), *size)
 
 
 def test_lite_is_a_few_million_parameters():
     total = sum(params_per_stream(VLocNetPP(load_model_config("lite"))).values())
-    assert 1e6 < total < 5e6
+    assert 1e6 < total < 6e6
+
+
+def test_global_downsample_pools_res3_for_the_global_stream_only():
+    """With ``global_downsample: 2`` the global stream reads the trunk's Res3 map 2x2-averaged and fuses the semantic
+    Res5c map 2x2-averaged; the trunk and the odometry stream are those of the plain network with the same weights."""
+    torch.manual_seed(0)
+    cfg = lite(global_downsample=2, global_pose_pooling="average")
+    halved, plain = VLocNetPP(cfg).eval(), VLocNetPP(lite(global_downsample=1, global_pose_pooling="average")).eval()
+    plain.load_state_dict(halved.state_dict())
+    image, K = torch.rand(1, 3, 128, 224), intrinsics(1, 224, 128)
+    with torch.inference_mode():
+        a, _ = halved.step(image, None, K)
+        b, _ = plain.step(image, None, K)
+        for key in ("res3", "odo_res5", "sem_res5c_fused"):
+            torch.testing.assert_close(a.taps[key], b.taps[key], rtol=0, atol=0)
+        pooled = a.taps["res3"].reshape(1, -1, 8, 2, 14, 2).mean(dim=(3, 5))
+        for block in halved.global_stream.res4[: cfg.res4_fusion_block]:
+            pooled = block(pooled)
+        torch.testing.assert_close(a.taps["res4c"], pooled, rtol=1e-5, atol=1e-5)
+        sem = a.taps["sem_res5c_fused"].reshape(1, -1, 4, 2, 7, 2).mean(dim=(3, 5))
+        torch.testing.assert_close(a.taps["res4c_fused"], halved.semantic_fusion(a.taps["res4c"], sem), rtol=1e-5, atol=1e-5)
+
+
+def test_flatten_head_reads_where_things_are():
+    """The flattened head sees every Res5c cell (swapping two cells changes the pose; the average cannot tell)
+    and refuses maps of another size than its config's input_size."""
+    torch.manual_seed(0)
+    cfg = lite(global_pose_pooling="flatten")
+    head = VLocNetPP(cfg).global_stream.head.eval()
+    h, w = cfg.global_res5_size
+    assert head.fc1.in_features == cfg.stage_channels[3] * h * w
+    x = torch.randn(1, cfg.stage_channels[3], h, w)
+    swapped = x.clone()
+    swapped[..., 0, 0], swapped[..., -1, -1] = x[..., -1, -1], x[..., 0, 0]
+    with torch.inference_mode():
+        assert not torch.allclose(head(x)[0], head(swapped)[0])
+        with pytest.raises(ValueError, match="input_size"):
+            head(torch.randn(1, cfg.stage_channels[3], h + 1, w))
 
 
 @pytest.mark.parametrize(
@@ -77,8 +119,8 @@ def test_lite_is_a_few_million_parameters():
     ],
 )
 def test_ablation_switch_removes_the_branch(switch, gone_modules, gone_taps):
-    full = VLocNetPP(lite())
-    cut = VLocNetPP(lite(**{switch: False}))
+    full = VLocNetPP(lite(input_size=(96, 64)))
+    cut = VLocNetPP(lite(input_size=(96, 64), **{switch: False}))
     full_names = {n for n, _ in full.named_parameters()}
     cut_names = {n for n, _ in cut.named_parameters()}
     removed = full_names - cut_names
@@ -98,7 +140,7 @@ def test_ablation_switch_removes_the_branch(switch, gone_modules, gone_taps):
 
 
 def test_all_switches_off_still_runs_every_task():
-    model = VLocNetPP(lite(temporal_fusion=False, semantic_fusion=False, warping=False)).eval()
+    model = VLocNetPP(lite(input_size=(96, 64), temporal_fusion=False, semantic_fusion=False, warping=False)).eval()
     assert set(params_per_stream(model)) == set(STREAMS)
     assert params_per_stream(model)["fusion"] == 0 and params_per_stream(model)["depth"] == 0
     with torch.inference_mode():
@@ -107,7 +149,7 @@ def test_all_switches_off_still_runs_every_task():
 
 
 def test_bad_inputs_are_clear_errors():
-    model = VLocNetPP(lite()).eval()
+    model = VLocNetPP(lite(input_size=(96, 64))).eval()
     with torch.inference_mode():
         with pytest.raises(ValueError, match="multiples of 16"):
             model.step(torch.rand(1, 3, 60, 96), None, intrinsics(1, 96, 60))
@@ -122,6 +164,7 @@ def test_bad_inputs_are_clear_errors():
             model.step(torch.rand(1, 3, 96, 128), state, intrinsics(1, 128, 96))
 
 
-def test_config_input_size_is_only_a_default():
-    cfg = dataclasses.replace(load_model_config("lite"), input_size=(64, 32))
-    check_step_shapes(cfg, 128, 64, batch=1)
+def test_config_input_size_is_only_a_default_with_average_pooling():
+    check_step_shapes(lite(input_size=(64, 32), global_pose_pooling="average"), 128, 64, batch=1)
+    with pytest.raises(ValueError, match="input_size"), torch.inference_mode():
+        VLocNetPP(lite(input_size=(64, 32))).eval().step(torch.rand(1, 3, 64, 128), None, intrinsics(1, 128, 64))

@@ -29,7 +29,7 @@ W, H = 96, 64
 @pytest.fixture(scope="module")
 def model():
     torch.manual_seed(0)
-    return VLocNetPP(lite())
+    return VLocNetPP(lite(input_size=(W, H)))
 
 
 def test_streaming_equals_clip_forward_in_eval_mode(model):
@@ -69,7 +69,7 @@ def test_state_carries_the_previous_frame(model):
 
 
 def test_position_prior_shifts_the_global_translation():
-    model = VLocNetPP(lite()).eval()
+    model = VLocNetPP(lite(input_size=(W, H))).eval()
     image = torch.rand(1, 3, H, W)
     with torch.no_grad():
         before, _ = model.step(image, tasks=("loc",))
@@ -98,7 +98,7 @@ def test_tasks_run_only_their_streams(model):
 
 def test_mtl_backward_reaches_every_parameter():
     torch.manual_seed(0)
-    model = VLocNetPP(lite()).train()
+    model = VLocNetPP(lite(input_size=(W, H))).train()
     criterion = VLocNetLoss("mtl")
     batch = random_clip_batch(2, 3, W, H, seed=4)
     outputs = model.forward_clip(batch["image"], batch["K"])
@@ -135,7 +135,7 @@ def test_stage_helpers_partition_the_parameters(model):
 def test_single_task_stage_trains_only_its_streams():
     """One optimiser step of stl-seg (as the trainer runs it) changes semantic and depth weights only."""
     torch.manual_seed(0)
-    model = VLocNetPP(lite()).train()
+    model = VLocNetPP(lite(input_size=(W, H))).train()
     before = {n: p.detach().clone() for n, p in model.named_parameters()}
     criterion = VLocNetLoss("stl-seg")
     for p in model.parameters():

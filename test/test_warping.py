@@ -137,7 +137,7 @@ def test_model_warps_previous_features_with_the_given_depth_and_pose(scene):
     """The semantic stream's warped taps are the previous features warped by the one pooled input-resolution grid."""
     prev_image, image, depth, T_rel, K = scene
     torch.manual_seed(0)
-    model = VLocNetPP(lite()).eval()
+    model = VLocNetPP(lite(input_size=(W, H))).eval()
     with torch.inference_mode():
         out0, state = model.step(prev_image, None, K)
         out1, _ = model.step(image, state, K, depth=depth, warp_rel_pose=T_rel)

@@ -21,6 +21,7 @@ from vlocnetpp_core.errors import DataError, UserError
 PACKAGE = "vlocnetpp_ros"
 BUILTIN_CONFIGS = ("paper", "lite", "lite_pose")
 TASKS = ("loc", "vo", "seg")  # global pose, odometry, segmentation
+POSE_POOLINGS = ("average", "flatten")
 
 
 @dataclass(frozen=True)
@@ -39,6 +40,15 @@ class ModelConfig:
     warping. ``warping`` and ``semantic_fusion`` must then be false too (an error otherwise: they
     are not silently switched off); the ``semantic_*``, ``num_classes`` and ``depth_*`` sizes are
     unused.
+
+    Two departures from the paper, both off by default (``lite`` uses them; ablation in
+    docs/results.md): ``global_downsample`` average-pools the trunk's Res3 map by this factor before
+    the global stream's Res4, so the global stream runs at a lower resolution than the trunk, the
+    odometry stream and the semantic stream (whose Res5c map is pooled by the same factor for the
+    Res4c fusion);
+    ``global_pose_pooling: flatten`` feeds the whole Res5c map of the global stream into fc1
+    instead of its global average (``average``, the paper's), which keeps where things are in
+    the image but fixes the input size to ``input_size``.
     """
 
     name: str = "paper"
@@ -61,6 +71,8 @@ class ModelConfig:
     semantic_fusion: bool = True
     warping: bool = True
     semantic_stream: bool = True
+    global_downsample: int = 1  # the global stream pools the trunk's Res3 map by this factor
+    global_pose_pooling: str = "average"  # "average" (paper: global average pooling) or "flatten" (whole Res5c map into fc1)
 
     def __post_init__(self) -> None:
         problems = self.problems()
@@ -79,7 +91,7 @@ class ModelConfig:
             out.append("depths must be >= 1 and widths even and >= 2")
         elif not 1 <= self.res4_fusion_block <= self.depths[2]:
             out.append(f"res4_fusion_block must be in 1..{self.depths[2]} (the number of Res4 blocks)")
-        sizes = ("num_classes", "stem_width", "expansion", "fc_width", "depth_width", "semantic_res4_dilation")
+        sizes = ("num_classes", "stem_width", "expansion", "fc_width", "depth_width", "semantic_res4_dilation", "global_downsample")
         out += [f"{k} must be >= 1, got {getattr(self, k)}" for k in sizes if getattr(self, k) < 1]
         if len(self.semantic_res5_dilations) < 1 or min(self.semantic_res5_dilations) < 1:
             out.append("semantic_res5_dilations needs at least one entry, all >= 1")
@@ -88,6 +100,8 @@ class ModelConfig:
             out.append(f"depth_range must be 0 < min < max, got {self.depth_range}")
         if not 0 <= self.dropout < 1:
             out.append(f"dropout must be in [0, 1), got {self.dropout}")
+        if self.global_pose_pooling not in POSE_POOLINGS:
+            out.append(f"global_pose_pooling must be one of {list(POSE_POOLINGS)}, got {self.global_pose_pooling!r}")
         needs_semantics = [k for k in ("warping", "semantic_fusion") if getattr(self, k)]
         if not self.semantic_stream and needs_semantics:
             out.append(f"semantic_stream is false (a pose-only network) but {' and '.join(needs_semantics)} "
@@ -104,6 +118,14 @@ class ModelConfig:
     def stage_channels(self) -> tuple[int, int, int, int]:
         """Output channels of Res2..Res5."""
         return tuple(self.expansion * v for v in self.widths)  # type: ignore[return-value]
+
+    @property
+    def global_res5_size(self) -> tuple[int, int]:
+        """``(h, w)`` of the global stream's Res5 map at ``input_size``: stride ``32 * global_downsample``
+        (every stride-2 layer and the pooling round up)."""
+        w, h = self.input_size
+        f = 32 * self.global_downsample
+        return -(-h // f), -(-w // f)
 
     def res5_dilations(self) -> tuple[int, ...]:
         """Dilation of the parallel branch of each semantic Res5 block (the list is repeated if short)."""

@@ -13,19 +13,23 @@ from vlocnetpp_core.model.backbone import PostNorm
 
 
 class PoseHead(nn.Module):
-    """``BN -> ELU -> GAP -> fc1 (ELU, dropout) -> fc2 xyz (3), fc3 quaternion (4)``.
+    """``BN -> ELU -> GAP (or flatten) -> fc1 (ELU, dropout) -> fc2 xyz (3), fc3 quaternion (4)``.
 
-    ``(B, C, h, w) -> (xyz (B, 3), quat (B, 4))``; the quaternion is normalised to a unit
+    ``(B, C, h, w) -> (xyz (B, 3), quat (B, 4))``. With ``flatten_size=(h, w)`` the map is flattened
+    into fc1 (``C * h * w`` inputs) instead of averaged, and only maps of that size are accepted
+    (``ValueError`` otherwise). The quaternion is normalised to a unit
     ``(w, x, y, z)`` with ``w >= 0``. fc3 starts at the identity rotation. Translations are
     ``xyz_offset + xyz_scale * fc2(h)`` (buffers saved with the weights; 0 and 1 unless set, e.g.
     to the mean and spread of the training positions), so fc2 regresses numbers of order one
     whatever the size of the scene.
     """
 
-    def __init__(self, in_channels: int, fc_width: int, dropout: float):
+    def __init__(self, in_channels: int, fc_width: int, dropout: float, flatten_size: tuple[int, int] | None = None):
         super().__init__()
         self.norm = PostNorm(in_channels)
-        self.fc1 = nn.Linear(in_channels, fc_width)
+        self.flatten_size = flatten_size
+        cells = 1 if flatten_size is None else flatten_size[0] * flatten_size[1]
+        self.fc1 = nn.Linear(in_channels * cells, fc_width)
         self.dropout = nn.Dropout(dropout)
         self.fc_xyz = nn.Linear(fc_width, 3)
         self.fc_quat = nn.Linear(fc_width, 4)
@@ -41,7 +45,14 @@ class PoseHead(nn.Module):
             self.fc_quat.bias[0] = 1.0
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        h = self.norm(x).mean(dim=(2, 3))
+        if self.flatten_size is None:
+            h = self.norm(x).mean(dim=(2, 3))
+        elif tuple(x.shape[-2:]) != self.flatten_size:
+            raise ValueError(f"this pose head flattens a {self.flatten_size[1]}x{self.flatten_size[0]} Res5 map (global_pose_pooling: "
+                             f"flatten fixes the model config's input_size) but got {x.shape[-1]}x{x.shape[-2]}: feed images "
+                             "of the config's input_size")
+        else:
+            h = self.norm(x).flatten(1)
         h = self.dropout(F.elu(self.fc1(h)))
         return self.xyz_offset + self.xyz_scale * self.fc_xyz(h), quat_normalize(self.fc_quat(h))
 

@@ -28,6 +28,8 @@ def model_info(config_name: str) -> dict[str, Any]:
         "params_trained_per_stage": {stage: sum(p.numel() for p in trainable_parameters(model, stage)) for stage in STAGES
                                      if _trains(stage, config.tasks)},
         "switches": {k: getattr(config, k) for k in ("semantic_stream", "temporal_fusion", "semantic_fusion", "warping")},
+        "global_stream": {"downsample": config.global_downsample, "pooling": config.global_pose_pooling,
+                          "res5_size": list(config.global_res5_size)},
         "tasks": list(config.tasks),
         "num_classes": config.num_classes if config.semantic_stream else 0,
     }
@@ -48,12 +50,21 @@ def format_table(info: dict[str, Any]) -> str:
     w, h = info["input_size"]
     classes = f"{info['num_classes']} classes" if info["num_classes"] else "pose only (no semantic stream)"
     lines = [f"model config {info['config']!r}: input {w}x{h} (width x height), {classes}",
-             "switches: " + ", ".join(f"{k}={'on' if v else 'off'}" for k, v in info["switches"].items()), "",
+             "switches: " + ", ".join(f"{k}={'on' if v else 'off'}" for k, v in info["switches"].items()),
+             _global_stream_line(info["global_stream"]), "",
              f"{'stream':<12}{'parameters':>14}"]
     lines += [f"{name:<12}{n:>14,}" for name, n in info["params_per_stream"].items()]
     lines += [f"{'total':<12}{info['params_total']:>14,}", "", f"{'stage':<12}{'trained':>14}"]
     lines += [f"{name:<12}{n:>14,}" for name, n in info["params_trained_per_stage"].items()]
     return "\n".join(lines)
+
+
+def _global_stream_line(g: dict[str, Any]) -> str:
+    """One line on the global stream's resolution and head, naming the departures from the paper."""
+    h, w = g["res5_size"]
+    res3 = "as is (the paper)" if g["downsample"] == 1 else f"pooled by {g['downsample']} (a departure from the paper)"
+    head = "averaged (the paper)" if g["pooling"] == "average" else "flattened (a departure from the paper)"
+    return f"global stream: reads the trunk's Res3 map {res3}; its {w}x{h} Res5c map is {head} into fc1"
 
 
 def run(args: argparse.Namespace) -> int:

@@ -8,9 +8,11 @@ Res_i, spatial strides in brackets; ``prev`` is the :class:`StreamState` of fram
       semantic: stem..Res3 [8] -> depth head -> D_t
                 Res4 [16] = sem_res4f -> AWF(., warp(prev.sem_res4f)) -> Res5 (dilated) [16] = sem_res5c
                 -> AWF(., warp(prev.sem_res5c)) -> decoder (+ skip from Res3) -> logits [1]
-      global:   Res4[:k] [16] = res4c -> AWF(., fused sem_res5c) -> Res4[k:] = res4f
-                -> Res5a [32] = res5a -> AWF(., prev.res5a) -> Res5b.. = res5c -> xyz, quat
+      global:   pool -> Res4[:k] [16 p] = res4c -> AWF(., fused sem_res5c) -> Res4[k:] = res4f
+                -> Res5a [32 p] = res5a -> AWF(., prev.res5a) -> Res5b.. = res5c -> xyz, quat
 
+``pool`` is average pooling by ``p``, the config's ``global_downsample`` (1 in the paper: none); the
+semantic Res5c map is pooled the same way before the Res4c AWF, so both have the global stream's stride.
 The warp (paper Eq. 4, :func:`geometry.warp_grid`) uses ``D_t`` and the predicted relative pose
 (or the ``depth`` / ``warp_rel_pose`` given to ``step``); the grid is computed once at input
 resolution and average-pooled to the OS16 feature size. Module names set the stream a weight
@@ -28,6 +30,7 @@ from dataclasses import dataclass, field, fields
 
 import torch
 from torch import nn
+from torch.nn import functional as F
 
 from vlocnetpp_core.geometry import pool_warp_grid, pose_to_matrix, warp_features, warp_grid
 from vlocnetpp_core.model.backbone import Stem, init_weights, make_stage
@@ -95,7 +98,8 @@ class GlobalPoseStream(nn.Module):
         self.res4 = make_stage(c[1], cfg.widths[2], c[2], cfg.depths[2], stride=2)
         self.res5 = make_stage(c[2], cfg.widths[3], c[3], cfg.depths[3], stride=2)
         self.temporal_fusion = AdaptiveWeightedFusion(c[3], c[3]) if cfg.temporal_fusion else None
-        self.head = PoseHead(c[3], cfg.fc_width, cfg.dropout)
+        flatten = cfg.global_res5_size if cfg.global_pose_pooling == "flatten" else None
+        self.head = PoseHead(c[3], cfg.fc_width, cfg.dropout, flatten)
 
 
 class OdometryStream(nn.Module):
@@ -255,12 +259,12 @@ class VLocNetPP(nn.Module):
                      new: StreamState) -> None:
         """Res4 with the semantic AWF after block ``res4_fusion_block``, Res5a with the temporal AWF, Res5, pose."""
         g, taps, k = self.global_stream, out.taps, self.config.res4_fusion_block
-        h = res3
+        h = self.global_pool(res3)
         for block in g.res4[:k]:
             h = block(h)
         taps["res4c"] = h
         if self.semantic_fusion is not None and sem_res5c is not None:
-            h = taps["res4c_fused"] = self.semantic_fusion(h, sem_res5c)
+            h = taps["res4c_fused"] = self.semantic_fusion(h, self.global_pool(sem_res5c))
         for block in g.res4[k:]:
             h = block(h)
         taps["res4f"] = h
@@ -274,6 +278,12 @@ class VLocNetPP(nn.Module):
             h = block(h)
         taps["res5c"] = h
         out.xyz, out.quat = g.head(h)
+
+    def global_pool(self, x: torch.Tensor) -> torch.Tensor:
+        """``(B, C, h, w) -> (B, C, ceil(h/p), ceil(w/p))``: average pooling by ``config.global_downsample`` (``p``), for
+        the trunk's Res3 map entering the global stream and the semantic Res5c map fused into its Res4c."""
+        f = self.config.global_downsample
+        return x if f == 1 else F.avg_pool2d(x, f, ceil_mode=True)
 
     def _warp_fuse(self, fusion: nn.Module, current: torch.Tensor, previous: torch.Tensor | None, warper: _Warper | None,
                    name: str, taps: dict[str, torch.Tensor]) -> torch.Tensor:
