@@ -4,8 +4,8 @@ retrieval baseline shipped beside it (models/vlocnetpp_lite.reference.npz) on th
 
 What it achieves today (README, "Results"), here on the 175 frames of a fresh loop: segmentation and
 odometry far better than untrained, the heading several times better and the position about three
-times better, though far from the 0.5 m target and far behind retrieval (over four test seeds 4.2 m /
-7.5 deg against 0.6 m / 2.3 deg); README says so. The target (median under 1 m here) is not asserted
+times better, though far from the 0.5 m target and behind retrieval (over four test seeds 2.7 m /
+2.9 deg against 0.6 m / 2.3 deg); README says so. The target (median under 1 m here) is not asserted
 while it is not met (issue 21).
 """
 
