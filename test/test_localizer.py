@@ -12,10 +12,10 @@ from scipy.spatial.transform import Rotation
 
 from vlocnetpp_core import geometry
 from vlocnetpp_core.checkpoint import save_checkpoint
-from vlocnetpp_core.model import VLocNetPP, load_model_config
 from vlocnetpp_core.errors import DataError, UserError
 from vlocnetpp_core.intrinsics import Intrinsics
 from vlocnetpp_core.localizer import UNKNOWN_VARIANCE, Localizer
+from vlocnetpp_core.model import VLocNetPP, load_model_config
 from vlocnetpp_core.preprocess import FrameError, network_input
 
 POSE_VAR = [0.04, 0.05, 0.06, 1e-3, 2e-3, 3e-3]
