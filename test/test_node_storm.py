@@ -145,24 +145,29 @@ def _pose(msg: PoseStamped) -> np.ndarray:
     return np.array([p.x, p.y, p.z, q.w, q.x, q.y, q.z])
 
 
-def _assert_first_frame_pose(got: PoseStamped, localizer: Localizer, frame: np.ndarray, stamp: float, checkpoint: Path) -> None:
+def _float64_first_frame_pose(checkpoint: Path, frame: np.ndarray, stamp: float) -> np.ndarray:
+    """``(x, y, z, qw, qx, qy, qz)`` of ``frame`` localised from the image alone by the network run in float64."""
+    exact = Localizer.from_checkpoint(checkpoint, num_threads=1)
+    exact.model.double()
+    result = exact.step(frame, "rgb8", stamp)
+    return np.concatenate((result.t, result.q))
+
+
+def _assert_first_frame_pose(got: PoseStamped, localizer: Localizer, frame: np.ndarray, stamp: float, exact: np.ndarray) -> None:
     """``got`` is the pose of ``frame`` localised from the image alone (the stamp jump reset the state; a
     first frame has nothing to warp, so the depth image sent with it does not change its outputs).
 
     Node and ``localizer`` run the same backend with one thread on the same pixels, so they do the
     same float32 operations, but a kernel may sum in another order (MKL and oneDNN pick by memory
     alignment): allowed is the float32 rounding error of this computation, measured as the largest
-    distance of ``want``'s position (and of its quaternion) to the same network run in float64, four
+    distance of ``want``'s position (and of its quaternion) to ``exact``, the network run in float64, four
     times over (two summation orders each err by about that much, in any component), plus a few
     roundings of the values. (The untrained network's activations reach hundreds and the flattened
     global head sums 4096 products in fc1, so that error is tens of float32 eps.)"""
     result = localizer.step(frame, "rgb8", stamp)
     assert result.reset_reason == "start"
     want = np.concatenate((result.t, result.q))
-    exact = Localizer.from_checkpoint(checkpoint, num_threads=1)
-    exact.model.double()
-    reference = exact.step(frame, "rgb8", stamp)
-    rounding = np.abs(want - np.concatenate((reference.t, reference.q)))
+    rounding = np.abs(want - exact)
     rounding = np.repeat([rounding[:3].max(), rounding[3:].max()], [3, 4])
     tol = 4 * rounding + 8 * np.finfo(np.float32).eps * np.maximum(1.0, np.abs(want))
     assert np.all(np.abs(_pose(got) - want) <= tol), (_pose(got), want, rounding)
@@ -209,8 +214,9 @@ def test_storms_of_malformed_messages_leave_memory_flat_and_the_nodes_answering(
         assert rss[1][0] - rss[0][0] < RSS_GROWTH_MB and rss[1][1] - rss[0][1] < RSS_GROWTH_MB, rss
 
         frame = run.frames[0]
-        _assert_first_frame_pose(poses[0], Localizer.from_checkpoint(checkpoint, num_threads=1), frame, stamp, checkpoint)
-        _assert_first_frame_pose(poses[1], Localizer.from_checkpoint(checkpoint, num_threads=1, backend="onnx"), frame, stamp, checkpoint)
+        exact = _float64_first_frame_pose(checkpoint, frame, stamp)
+        _assert_first_frame_pose(poses[0], Localizer.from_checkpoint(checkpoint, num_threads=1), frame, stamp, exact)
+        _assert_first_frame_pose(poses[1], Localizer.from_checkpoint(checkpoint, num_threads=1, backend="onnx"), frame, stamp, exact)
 
         counted = Counter()
         for node_name in ("/localizer", f"{COMPRESSED_NS}/localizer"):
