@@ -53,6 +53,25 @@ def test_localization_loss_known_values_in_se3_form():
     assert loss0.item() == pytest.approx(1.5 + q_err, rel=1e-5)
 
 
+def test_anchor_loss_is_the_cross_entropy_against_the_nearest_anchor():
+    """With position anchors the loc loss adds the cross-entropy of each frame's anchor scores against the
+    anchor nearest its ground-truth position, with weight 1, beside the unchanged paper terms."""
+    anchors = torch.tensor([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0], [0.0, 10.0, 0.0]])
+    logits = [torch.tensor([[2.0, 0.0, 0.0]]), torch.tensor([[0.0, 1.0, 3.0]])]
+    outputs = [StepOutput(xyz=torch.zeros(1, 3), quat=torch.tensor([IDENTITY_Q]), anchor_logits=lg, anchor_xyz=anchors)
+               for lg in logits]
+    # frame 0 nearest anchor 1, frame 1 nearest anchor 2
+    batch = pose_batch(t=[[8.0, 1.0, 0.0], [1.0, 7.0, 0.0]], q=[IDENTITY_Q] * 2, rel_t=[[0.0, 0.0, 0.0]] * 2,
+                       rel_q=[IDENTITY_Q] * 2, frames=2)
+    expected = (-torch.log_softmax(logits[0], 1)[0, 1] - torch.log_softmax(logits[1], 1)[0, 2]).item() / 2
+    _, parts = VLocNetLoss("stl-loc")(outputs, batch)
+    assert parts["anchor"].item() == pytest.approx(expected, rel=1e-6)
+    plain = [StepOutput(xyz=o.xyz, quat=o.quat) for o in outputs]
+    _, plain_parts = VLocNetLoss("stl-loc")(plain, batch)
+    assert "anchor" not in plain_parts
+    assert parts["loc"].item() == pytest.approx(plain_parts["loc"].item() + expected, rel=1e-6)
+
+
 def test_rotation_error_does_not_depend_on_the_quaternion_sign():
     # Headings of 179 and -179 deg are 2 deg apart; their canonical (w >= 0) quaternions are almost
     # opposite. The loss must see the 2 deg, not the sign flip.
@@ -137,8 +156,9 @@ def test_optimiser_steps_drive_every_task_loss_down():
     batch = random_clip_batch(2, 2, W, H, seed=7)
     batch["labels"] = (torch.arange(W) * 4 // W).expand(2, 2, H, W).clone()  # four vertical bands: learnable
     batch["depth"] = torch.linspace(2.0, 20.0, H)[:, None].expand(2, 2, 1, H, W).clone()
+    model.set_position_prior(batch["t"].flatten(0, 1).numpy())
     optimizer = torch.optim.Adam(list(trainable_parameters(model, "mtl")) + list(crit.parameters()), lr=2e-3)
-    keys = ("x", "q", "x_rel", "x_vo", "q_vo", "seg", "depth")
+    keys = ("x", "q", "x_rel", "anchor", "x_vo", "q_vo", "seg", "depth")
     history = []
     with single_thread():
         for _ in range(150):

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import math
 
+import numpy as np
 import pytest
 import torch
 from model_fixtures import (
@@ -14,6 +15,7 @@ from model_fixtures import (
 )
 
 from vlocnetpp_core.model import STREAMS, ModelConfig, VLocNetPP, load_model_config, params_per_stream
+from vlocnetpp_core.model.anchors import kmeans_anchors
 
 
 def expected_taps(cfg: ModelConfig, batch: int, width: int, height: int) -> dict[str, tuple[int, ...]]:
@@ -107,6 +109,50 @@ def test_flatten_head_reads_where_things_are():
         assert not torch.allclose(head(x)[0], head(swapped)[0])
         with pytest.raises(ValueError, match="input_size"):
             head(torch.randn(1, cfg.stage_channels[3], h + 1, w))
+
+
+def test_anchor_head_mixes_anchors_plus_offsets():
+    """With position anchors the position is the softmax-weighted sum of anchor + offset: a score that dominates
+    puts the camera on its anchor plus that anchor's offset, equal scores average; fc2 of the paper is gone."""
+    torch.manual_seed(0)
+    cfg = lite(global_pose_anchors=3)
+    model = VLocNetPP(cfg).eval()
+    head = model.global_stream.head
+    assert head.fc_anchor.out_features == 3 and head.fc_xyz.out_features == 9
+    positions = np.array([[0.0, 0.0, 0.0], [50.0, 0.0, 1.0], [0.0, -40.0, 2.0]]).repeat(4, axis=0)
+    model.set_position_prior(positions)
+    anchors = head.anchor_xyz.clone()
+    assert sorted(anchors[:, 2].tolist()) == [0.0, 1.0, 2.0]  # one anchor per cluster of positions
+    offsets = torch.tensor([[1.0, 2.0, 3.0], [-1.0, 0.0, 0.5], [0.0, 0.0, -2.0]])
+    x = torch.randn(1, cfg.stage_channels[3], *cfg.global_res5_size)
+    with torch.no_grad():
+        head.fc_anchor.weight.zero_()
+        head.fc_xyz.weight.zero_()
+        head.fc_xyz.bias.copy_(offsets.flatten())
+        head.fc_anchor.bias.copy_(torch.tensor([0.0, 30.0, 0.0]))
+        xyz, _, logits = head(x)
+        torch.testing.assert_close(xyz[0], anchors[1] + offsets[1])
+        assert logits.shape == (1, 3)
+        head.fc_anchor.bias.zero_()
+        xyz, _, _ = head(x)
+        torch.testing.assert_close(xyz[0], (anchors + offsets).mean(0))
+    with pytest.raises(ValueError, match="3 position anchors"):
+        head.set_anchors(torch.zeros(4, 3))
+    out, _ = model.step(torch.rand(1, 3, 128, 224), tasks=("loc",))
+    assert out.anchor_logits.shape == (1, 3) and out.anchor_xyz is head.anchor_xyz
+
+
+def test_kmeans_anchors_cover_the_positions():
+    rng = np.random.default_rng(0)
+    centres = np.array([[0.0, 0.0, 0.0], [30.0, 0.0, 0.0], [0.0, 30.0, 0.0], [30.0, 30.0, 5.0]])
+    positions = (centres[:, None] + rng.normal(0, 0.5, (4, 50, 3))).reshape(-1, 3)
+    anchors = kmeans_anchors(positions, 4, seed=1)
+    assert np.abs(np.sort(anchors, axis=0) - np.sort(centres, axis=0)).max() < 0.5
+    np.testing.assert_array_equal(anchors, kmeans_anchors(positions, 4, seed=1))
+    few = kmeans_anchors(positions[:2], 5)  # fewer distinct positions than anchors: each position, repeated
+    assert few.shape == (5, 3) and {tuple(p) for p in few} == {tuple(p) for p in positions[:2]}
+    with pytest.raises(ValueError, match="non-empty"):
+        kmeans_anchors(np.zeros((0, 3)), 4)
 
 
 @pytest.mark.parametrize(

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 from model_fixtures import (
@@ -69,13 +70,16 @@ def test_state_carries_the_previous_frame(model):
 
 
 def test_position_prior_shifts_the_global_translation():
-    model = VLocNetPP(lite(input_size=(W, H))).eval()
+    """The paper's head is centred on the mean training position and scaled by the spread (at least 1 m)."""
+    model = VLocNetPP(lite(input_size=(W, H), global_pose_anchors=0)).eval()
     image = torch.rand(1, 3, H, W)
+    positions = np.array([[100.0, -20.0, 3.5]]) + np.array([[-4.0, 0.0, 0.1], [4.0, 0.0, -0.1]])
     with torch.no_grad():
         before, _ = model.step(image, tasks=("loc",))
-        model.set_position_prior([100.0, -20.0, 3.5])
+        model.set_position_prior(positions)
         after, _ = model.step(image, tasks=("loc",))
-    torch.testing.assert_close(after.xyz - before.xyz, torch.tensor([[100.0, -20.0, 3.5]]))
+    torch.testing.assert_close(model.global_stream.head.xyz_scale, torch.tensor([4.0, 1.0, 1.0]))
+    torch.testing.assert_close(after.xyz, torch.tensor([[100.0, -20.0, 3.5]]) + torch.tensor([4.0, 1.0, 1.0]) * before.xyz)
     torch.testing.assert_close(after.quat, before.quat)
 
 

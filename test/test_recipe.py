@@ -18,12 +18,14 @@ def _recipe(tmp_path, **changes) -> dict:
     cfg = load_model_config("lite").to_dict()
     cfg["input_size"] = [64, 48]
     (tmp_path / "tiny.yaml").write_text(yaml.safe_dump(cfg))
+    (tmp_path / "tiny_direct.yaml").write_text(yaml.safe_dump(cfg | {"global_pose_anchors": 0}))
     recipe = {
         "config": str(tmp_path / "tiny.yaml"),
         "datasets": {"campus": {"synth": {"seed": 0, "loops": 3, "test_loops": 1, "frames_per_loop": 8, "size": [64, 48]}}},
         "defaults": {"data": "campus", "batch_size": 2, "clip_len": 2, "workers": 0, "val_every": 2},
         "stages": [
-            {"name": "vo", "stage": "stl-vo", "schedule": [{"steps": 2, "lr": 1e-3}], "parallel": "a", "threads": 1},
+            {"name": "vo", "stage": "stl-vo", "schedule": [{"steps": 2, "lr": 1e-3}], "parallel": "a", "threads": 1,
+             "config": "tiny_direct.yaml"},  # another model config (its global head without anchors), next to the recipe
             {"name": "seg", "stage": "stl-seg", "schedule": [{"steps": 2, "lr": 1e-3}], "parallel": "a", "threads": 1},
             {"name": "loc", "stage": "stl-loc", "init": ["vo"], "s_q_init": 0,
              "schedule": [{"steps": 2, "lr": 1e-3}, {"steps": 4, "lr": 1e-4, "lr_end": 1e-6}]},
@@ -50,7 +52,9 @@ def test_recipe_runs_every_stage_exports_and_resumes(tmp_path, capsys):
     # the schedule, resumed at the step-down; the second entry a cosine from 1e-4 at step 2 to 1e-6 at step 4
     assert [r["step"] for r in log] == [1, 2, 3, 4]
     assert [r["lr"] for r in log] == pytest.approx([1e-3, 1e-3, 1e-4, (1e-4 + 1e-6) / 2], rel=1e-9)
+    assert read_checkpoint_meta(out / "vo" / "last")["model_config"]["global_pose_anchors"] == 0  # the stage's config
     meta = read_checkpoint_meta(tmp_path / "models" / "tiny")
+    assert meta["model_config"]["global_pose_anchors"] == 256  # the recipe's, on the trunk of a stage of another config
     assert meta["training"]["stage"] == "stl-loc" and meta["training"]["init"][0]["path"].endswith("vo/best.safetensors")
     reference = ReferenceSet.load(tmp_path / "models" / "tiny.reference.npz")
     assert len(reference) == 24 and "dataset 'campus'" in reference.source  # the 3 training loops of 8 frames
@@ -78,6 +82,8 @@ def test_recipe_resumes_an_unfinished_schedule(tmp_path):
     ({"stages": [{"name": "loc", "stage": "stl-loc", "init": ["vo"], "schedule": [{"steps": 2, "lr": 1e-3}]}]}, "'vo' (init or continue) is not an earlier stage"),
     ({"stages": [{"name": "vo", "stage": "stl-vo", "schedule": [{"steps": 2}]}]}, "'schedule' must be a list"),
     ({"stages": [{"name": "vo", "stage": "stl-vo", "data": "nope", "schedule": [{"steps": 2, "lr": 1e-3}]}]}, "data 'nope' is not one of"),
+    ({"stages": [{"name": "vo", "stage": "stl-vo", "config": "nope.yaml", "schedule": [{"steps": 2, "lr": 1e-3}]}]},
+     "config 'nope.yaml' is neither a built-in model config"),
     ({"export": {"stage": "mtl"}}, "export stage 'mtl'"),
 ])
 def test_recipe_mistakes_are_one_line_naming_the_file(tmp_path, capsys, change, message):
@@ -113,6 +119,18 @@ def test_the_shipped_recipes_give_valid_train_commands(name, tmp_path):
         assert len(commands) == len(stage.schedule)
         for command in commands:
             args = parser.parse_args(command[command.index("train"):])
-            assert args.stage == stage.stage and args.config == recipe.config
+            assert args.stage == stage.stage and args.config == (stage.config or recipe.config)
+            load_model_config(args.config)
             assert [str(tmp_path / ref / "best.safetensors") for ref in stage.init] == (args.init or [])
     assert recipe.export["stage"] == recipe.stages[-1].name
+
+
+def test_the_shipped_trunk_config_is_lite_with_the_direct_position_head():
+    """config/recipes/lite_trunk.yaml (the shipped recipe's trunk stage) differs from lite only in its name and
+    position anchors, so the trunk it learns fits the lite network the recipe exports."""
+    from conftest import REPO
+
+    lite = load_model_config("lite").to_dict()
+    trunk = load_model_config(str(REPO / "config" / "recipes" / "lite_trunk.yaml")).to_dict()
+    assert {k for k in lite if lite[k] != trunk[k]} == {"name", "global_pose_anchors"}
+    assert trunk["global_pose_anchors"] == 0

@@ -3,10 +3,9 @@ prior, so the baseline already predicts the middle of the campus) on a fresh syn
 retrieval baseline shipped beside it (models/vlocnetpp_lite.reference.npz) on the same frames.
 
 What it achieves today (README, "Results"), here on the 175 frames of a fresh loop: segmentation and
-odometry far better than untrained, the heading several times better and the position about three
-times better, though far from the 0.5 m target and behind retrieval (over four test seeds 2.7 m /
-2.9 deg against 0.6 m / 2.3 deg); README says so. The target (median under 1 m here) is not asserted
-while it is not met (issue 21).
+odometry far better than untrained, the heading several times better, and the position within a
+metre (0.54 m when this was written; over four test seeds 0.67 m / 2.9 deg against retrieval's
+0.59 m / 2.3 deg, so still short of the 0.5 m target and of retrieval; README says so).
 """
 
 from __future__ import annotations
@@ -59,15 +58,17 @@ def test_shipped_model_beats_an_untrained_one(fresh_loop, tmp_path):
     torch.manual_seed(0)  # the untrained baseline is the same network whatever ran before in this process
     untrained = VLocNetPP(model.config)
     head, trained_head = untrained.global_stream.head, model.global_stream.head
-    with torch.no_grad():  # same position prior: the baseline predicts the middle of the campus
-        head.xyz_offset.copy_(trained_head.xyz_offset)
-        head.xyz_scale.copy_(trained_head.xyz_scale)
+    with torch.no_grad():  # same position prior and anchors: the baseline predicts the middle of the campus
+        for name in ("xyz_offset", "xyz_scale", "anchor_xyz"):
+            if hasattr(trained_head, name):
+                getattr(head, name).copy_(getattr(trained_head, name))
     baseline = save_checkpoint(tmp_path / "untrained", untrained, {"intrinsics": meta["intrinsics"]})
     good, bad = score(shipped, fresh_loop), score(baseline, fresh_loop)
     assert good["miou"] > 0.4 and good["miou"] > 5 * bad["miou"], (good, bad)
     assert good["vo"] < bad["vo"] / 3, (good, bad)
     assert good["r"] < bad["r"] / 4, (good, bad)
     assert good["t"] < bad["t"] / 2, (good, bad)
+    assert good["t"] < 1.0, good  # metres, median: the camera is placed, not only the campus
 
 
 def test_the_shipped_retrieval_baseline_is_computed_from_the_training_images(fresh_loop):

@@ -12,6 +12,9 @@ Per clip of ``T`` frames (``outputs[t]`` are :class:`~vlocnetpp_core.model.StepO
   training traded the global pose for smooth predictions until the stream predicted the mean of
   the campus (measured: docs/results.md, 2026-12-02). Here the consistency errors, derived from the
   global predictions and in their units, share their weights.
+  With position anchors (config ``global_pose_anchors``, a departure from the paper) ``loc`` adds
+  the cross-entropy of the anchor scores against each frame's nearest anchor (weight 1, part
+  ``anchor``): the classification that places the frame, before the offset refines it.
 * ``vo`` (Eq. 3 of the odometry): the odometry outputs against ``rel_t, rel_q`` over frames
   ``1..T-1`` (frame 0 has no previous frame), weights ``s_x_vo, s_q_vo``.
 * ``seg``: cross-entropy over pixels whose label is not 255, averaged over labelled pixels.
@@ -116,7 +119,7 @@ class VLocNetLoss(nn.Module):
     ``forward(outputs, batch)`` takes the ``T`` step outputs of a clip and the batch dict of
     ``ClipDataset`` (``t, q, rel_t, rel_q (B, T, 3|4)``, ``labels (B, T, H, W)``,
     ``depth (B, T, 1, H, W)``) and returns ``(total, parts)``; ``parts`` holds the raw errors
-    (``x``, ``q``, ``x_rel``, ``q_rel``, ``x_vo``, ``q_vo``, ``seg``, ``depth``) and the task
+    (``x``, ``q``, ``x_rel``, ``q_rel``, ``anchor``, ``x_vo``, ``q_vo``, ``seg``, ``depth``) and the task
     losses (``loc``, ``vo``), detached.
     """
 
@@ -159,6 +162,9 @@ class VLocNetLoss(nn.Module):
                 parts["x_rel"], parts["q_rel"] = pose_errors(rel_xyz, rel_quat, batch["rel_t"][:, 1:T], batch["rel_q"][:, 1:T])
                 x_err, q_err = x_err + parts["x_rel"], q_err + parts["q_rel"]
             loc = weighted(x_err, self.s_x) + weighted(q_err, self.s_q)
+            if outputs[0].anchor_logits is not None:
+                parts["anchor"] = anchor_loss([o.anchor_logits for o in outputs], outputs[0].anchor_xyz, batch["t"][:, :T])
+                loc = loc + parts["anchor"]
             parts["loc"] = loc
             terms.append(loc)
         if "vo" in self.tasks and T > 1:
@@ -180,6 +186,14 @@ class VLocNetLoss(nn.Module):
         if not terms:
             raise ValueError("no loss term has support in this batch (no labels, no depth and single-frame clips?)")
         return torch.stack(terms).sum(), {k: v.detach() for k, v in parts.items()}
+
+
+def anchor_loss(logits: Sequence[torch.Tensor], anchor_xyz: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    """Mean cross-entropy of the anchor scores ``logits[i] (B, N)`` of frame ``i`` against each frame's
+    nearest anchor (``anchor_xyz (N, 3)``, ground-truth positions ``t (B, T, 3)``, metres)."""
+    logits_btn = torch.stack(list(logits), 1)
+    nearest_bt = torch.cdist(t.to(anchor_xyz.dtype), anchor_xyz.expand(t.shape[0], -1, -1)).argmin(-1)
+    return F.cross_entropy(logits_btn.flatten(0, 1), nearest_bt.flatten())
 
 
 def _sum_over_frames(fn, predictions: list[torch.Tensor], targets: torch.Tensor) -> tuple[torch.Tensor, int]:

@@ -19,7 +19,9 @@ Stage keys: ``name`` (run folder), ``stage``, ``schedule`` (list of ``{steps, lr
 from ``lr`` to ``R`` along a half cosine over the entry, ``vlocnetpp train --lr-end``), ``init`` (stage names: their
 ``best`` weights, in order), ``continue`` (a stage name: start as a copy of that stage's run
 folder and resume it, e.g. to use a stage's early weights as another's init and train it on),
-``data`` / ``val_data`` (dataset names), ``parallel`` (stages with
+``data`` / ``val_data`` (dataset names), ``config`` (this stage's model config instead of the
+recipe's: a built-in name or a YAML file relative to the recipe; e.g. a stage that learns a
+shared trunk with another head), ``parallel`` (stages with
 the same value that follow each other run side by side, e.g. two single-thread stages on two
 cores), and any other ``vlocnetpp train`` flag (``threads``, ``frame_strides``, ``s_q_init``,
 ``val_split``, ...; lists become comma-separated). Every stage runs as its own process (its
@@ -48,7 +50,7 @@ import yaml
 
 from vlocnetpp_core.errors import UserError
 
-STAGE_KEYS = {"name", "stage", "schedule", "init", "data", "val_data", "parallel", "continue"}
+STAGE_KEYS = {"name", "stage", "schedule", "init", "data", "val_data", "parallel", "continue", "config"}
 
 
 @dataclass
@@ -62,6 +64,7 @@ class Stage:
     flags: dict = field(default_factory=dict)
     parallel: str | None = None
     continues: str | None = None
+    config: str | None = None  # model config of this stage (default: the recipe's)
 
     @property
     def steps(self) -> int:
@@ -108,13 +111,27 @@ def load_recipe(path: str | Path) -> Recipe:
             if key in entry and entry[key] not in datasets:
                 raise UserError(f"{where}: {key} '{entry[key]}' is not one of the recipe's datasets ({', '.join(datasets) or 'none'})")
         names.add(entry["name"])
+        config = None if entry.get("config") is None else _stage_config(str(entry["config"]), path, where)
         flags = {key: v for key, v in entry.items() if key not in STAGE_KEYS - {"data", "val_data"}}
         stages.append(Stage(entry["name"], entry["stage"], schedule, list(entry.get("init") or []), flags, entry.get("parallel"),
-                            entry.get("continue")))
+                            entry.get("continue"), config))
     export = raw.get("export")
     if export is not None and export.get("stage") not in names:
         raise UserError(f"{path}: export stage '{export.get('stage')}' is not one of the stages")
     return Recipe(path, str(raw["config"]), datasets, stages, export)
+
+
+def _stage_config(value: str, recipe_path: Path, where: str) -> str:
+    """A stage's ``config``: a built-in name, or a YAML path relative to the recipe file (made absolute)."""
+    from vlocnetpp_core.model.config import BUILTIN_CONFIGS
+
+    if value in BUILTIN_CONFIGS:
+        return value
+    resolved = (recipe_path.parent / value).resolve()
+    if not resolved.is_file():
+        raise UserError(f"{where}: config '{value}' is neither a built-in model config ({', '.join(BUILTIN_CONFIGS)}) "
+                        f"nor a file next to the recipe ({resolved})")
+    return str(resolved)
 
 
 # --------------------------------------------------------------------------- running
@@ -171,7 +188,7 @@ def stage_commands(stage: Stage, recipe: Recipe, out: Path, python: str = sys.ex
     """The ``vlocnetpp train`` commands still to run for ``stage`` (one per unfinished schedule entry)."""
     run_dir = out / stage.name
     done = stage_step(run_dir)
-    base = [python, "-m", "vlocnetpp_core.cli", "train", "--config", recipe.config, "--stage", stage.stage, "--out", str(run_dir),
+    base = [python, "-m", "vlocnetpp_core.cli", "train", "--config", stage.config or recipe.config, "--stage", stage.stage, "--out", str(run_dir),
             "--no-progress", *_flag_args(stage.flags, recipe, out)]
     for ref in stage.init:
         base += ["--init", str(out / ref / "best.safetensors")]

@@ -7,8 +7,10 @@
 * ``"whole"`` (the default): every tensor whose name exists in the run's network;
 * ``"streams"`` (``mtl`` from several single-task checkpoints): each stream from the checkpoint of
   the stage that trains it (:data:`STREAM_SOURCE`);
-* ``"trunk"`` (``stl-loc`` on ``stl-vo``): only the shared trunk, kept frozen (weights and
-  BatchNorm statistics) so ``mtl`` can combine the two pose streams;
+* ``"trunk"`` (one pose stage on the other: ``stl-loc`` on ``stl-vo``, ``stl-vo`` on ``stl-loc``): only
+  the shared trunk, kept frozen (weights and BatchNorm statistics) so ``mtl`` can combine the two
+  pose streams; the other stream is not carried (its head may differ, e.g. the global stream's with
+  or without position anchors);
 * ``"encoder"`` (``stl-loc`` on ``stl-seg``): the semantic encoder as the global stream's
   backbone (our stand-in for ImageNet weights; :func:`semantic_encoder_as_global_stream`).
 
@@ -28,6 +30,7 @@ from vlocnetpp_core.model.stages import STAGE_TASKS, stream_of
 
 INIT_RULES: dict[tuple[str, str], str] = {
     ("stl-loc", "stl-vo"): "trunk",
+    ("stl-vo", "stl-loc"): "trunk",
     ("stl-loc", "stl-seg"): "encoder",
 }
 STREAM_SOURCE = {"global": "stl-loc", "odometry": "stl-vo", "semantic": "stl-seg", "depth": "stl-seg"}  # the fusion: none

@@ -41,14 +41,17 @@ class ModelConfig:
     are not silently switched off); the ``semantic_*``, ``num_classes`` and ``depth_*`` sizes are
     unused.
 
-    Two departures from the paper, both off by default (``lite`` uses them; ablation in
+    Three departures from the paper, all off by default (``lite`` uses them; ablation in
     docs/results.md): ``global_downsample`` average-pools the trunk's Res3 map by this factor before
     the global stream's Res4, so the global stream runs at a lower resolution than the trunk, the
     odometry stream and the semantic stream (whose Res5c map is pooled by the same factor for the
     Res4c fusion);
     ``global_pose_pooling: flatten`` feeds the whole Res5c map of the global stream into fc1
     instead of its global average (``average``, the paper's), which keeps where things are in
-    the image but fixes the input size to ``input_size``.
+    the image but fixes the input size to ``input_size``;
+    ``global_pose_anchors: N`` (0: the paper's fc2 regressing the position) makes the position
+    head score ``N`` anchor positions (k-means of the training positions) and regress an offset
+    from each: the position is the softmax-weighted sum of ``anchor + offset``.
     """
 
     name: str = "paper"
@@ -73,6 +76,7 @@ class ModelConfig:
     semantic_stream: bool = True
     global_downsample: int = 1  # the global stream pools the trunk's Res3 map by this factor
     global_pose_pooling: str = "average"  # "average" (paper: global average pooling) or "flatten" (whole Res5c map into fc1)
+    global_pose_anchors: int = 0  # position anchors of the global pose head (0: the paper's direct regression)
 
     def __post_init__(self) -> None:
         problems = self.problems()
@@ -100,6 +104,8 @@ class ModelConfig:
             out.append(f"depth_range must be 0 < min < max, got {self.depth_range}")
         if not 0 <= self.dropout < 1:
             out.append(f"dropout must be in [0, 1), got {self.dropout}")
+        if self.global_pose_anchors < 0:
+            out.append(f"global_pose_anchors must be >= 0 (0: the paper's direct position regression), got {self.global_pose_anchors}")
         if self.global_pose_pooling not in POSE_POOLINGS:
             out.append(f"global_pose_pooling must be one of {list(POSE_POOLINGS)}, got {self.global_pose_pooling!r}")
         needs_semantics = [k for k in ("warping", "semantic_fusion") if getattr(self, k)]

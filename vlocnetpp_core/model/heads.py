@@ -15,36 +15,55 @@ from vlocnetpp_core.model.backbone import PostNorm
 class PoseHead(nn.Module):
     """``BN -> ELU -> GAP (or flatten) -> fc1 (ELU, dropout) -> fc2 xyz (3), fc3 quaternion (4)``.
 
-    ``(B, C, h, w) -> (xyz (B, 3), quat (B, 4))``. With ``flatten_size=(h, w)`` the map is flattened
-    into fc1 (``C * h * w`` inputs) instead of averaged, and only maps of that size are accepted
-    (``ValueError`` otherwise). The quaternion is normalised to a unit
-    ``(w, x, y, z)`` with ``w >= 0``. fc3 starts at the identity rotation. Translations are
-    ``xyz_offset + xyz_scale * fc2(h)`` (buffers saved with the weights; 0 and 1 unless set, e.g.
-    to the mean and spread of the training positions), so fc2 regresses numbers of order one
-    whatever the size of the scene.
+    ``(B, C, h, w) -> (xyz (B, 3), quat (B, 4), anchor_logits (B, N) or None)``. With
+    ``flatten_size=(h, w)`` the map is flattened into fc1 (``C * h * w`` inputs) instead of averaged,
+    and only maps of that size are accepted (``ValueError`` otherwise). The quaternion is normalised
+    to a unit ``(w, x, y, z)`` with ``w >= 0``. fc3 starts at the identity rotation.
+
+    Translation, without anchors (``anchors=0``, the paper): ``xyz_offset + xyz_scale * fc2(h)``
+    (buffers saved with the weights; 0 and 1 unless set, e.g. to the mean and spread of the training
+    positions), so fc2 regresses numbers of order one whatever the size of the scene.
+    With ``anchors=N``: a linear layer scores the ``N`` anchor positions ``anchor_xyz (N, 3)``
+    (metres, world frame; a buffer set by :meth:`set_anchors`), fc2 regresses an offset in metres
+    from each (``3 N`` outputs), and ``xyz = sum_k softmax(scores)_k (anchor_xyz_k + offset_k)``; the
+    scores are returned for the classification loss (``None`` without anchors).
     """
 
-    def __init__(self, in_channels: int, fc_width: int, dropout: float, flatten_size: tuple[int, int] | None = None):
+    def __init__(self, in_channels: int, fc_width: int, dropout: float, flatten_size: tuple[int, int] | None = None,
+                 anchors: int = 0):
         super().__init__()
         self.norm = PostNorm(in_channels)
         self.flatten_size = flatten_size
         cells = 1 if flatten_size is None else flatten_size[0] * flatten_size[1]
         self.fc1 = nn.Linear(in_channels * cells, fc_width)
         self.dropout = nn.Dropout(dropout)
-        self.fc_xyz = nn.Linear(fc_width, 3)
+        self.fc_xyz = nn.Linear(fc_width, 3 * max(anchors, 1))
         self.fc_quat = nn.Linear(fc_width, 4)
-        self.register_buffer("xyz_offset", torch.zeros(3))
-        self.register_buffer("xyz_scale", torch.ones(3))
+        self.fc_anchor = nn.Linear(fc_width, anchors) if anchors else None
+        if anchors:
+            self.register_buffer("anchor_xyz", torch.zeros(anchors, 3))
+        else:
+            self.register_buffer("xyz_offset", torch.zeros(3))
+            self.register_buffer("xyz_scale", torch.ones(3))
         self.custom_init()
 
     def custom_init(self) -> None:
-        for fc in (self.fc1, self.fc_xyz, self.fc_quat):
-            nn.init.normal_(fc.weight, std=0.01)
-            nn.init.zeros_(fc.bias)
+        for fc in (self.fc1, self.fc_xyz, self.fc_quat, self.fc_anchor):
+            if fc is not None:
+                nn.init.normal_(fc.weight, std=0.01)
+                nn.init.zeros_(fc.bias)
         with torch.no_grad():
             self.fc_quat.bias[0] = 1.0
 
-    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def set_anchors(self, xyz: torch.Tensor) -> None:
+        """Set the anchor positions: ``xyz (N, 3)`` metres, world frame (``N`` as built)."""
+        if self.fc_anchor is None or tuple(xyz.shape) != tuple(self.anchor_xyz.shape):
+            have = 0 if self.fc_anchor is None else len(self.anchor_xyz)
+            raise ValueError(f"this pose head has {have} position anchors, got anchors of shape {tuple(xyz.shape)}")
+        with torch.no_grad():
+            self.anchor_xyz.copy_(xyz)
+
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
         if self.flatten_size is None:
             h = self.norm(x).mean(dim=(2, 3))
         elif tuple(x.shape[-2:]) != self.flatten_size:
@@ -54,7 +73,13 @@ class PoseHead(nn.Module):
         else:
             h = self.norm(x).flatten(1)
         h = self.dropout(F.elu(self.fc1(h)))
-        return self.xyz_offset + self.xyz_scale * self.fc_xyz(h), quat_normalize(self.fc_quat(h))
+        quat = quat_normalize(self.fc_quat(h))
+        if self.fc_anchor is None:
+            return self.xyz_offset + self.xyz_scale * self.fc_xyz(h), quat, None
+        logits_bn = self.fc_anchor(h)
+        offsets_bn3 = self.fc_xyz(h).unflatten(1, (-1, 3))
+        xyz = torch.einsum("bn,bnc->bc", logits_bn.softmax(dim=1), self.anchor_xyz + offsets_bn3)
+        return xyz, quat, logits_bn
 
 
 def bilinear_kernel(channels: int, kernel_size: int) -> torch.Tensor:

@@ -28,11 +28,13 @@ from __future__ import annotations
 from collections.abc import Iterable
 from dataclasses import dataclass, field, fields
 
+import numpy as np
 import torch
 from torch import nn
 from torch.nn import functional as F
 
 from vlocnetpp_core.geometry import pool_warp_grid, pose_to_matrix, warp_features, warp_grid
+from vlocnetpp_core.model.anchors import kmeans_anchors
 from vlocnetpp_core.model.backbone import Stem, init_weights, make_stage
 from vlocnetpp_core.model.config import TASKS, ModelConfig
 from vlocnetpp_core.model.fusion import AdaptiveWeightedFusion
@@ -45,7 +47,9 @@ class StepOutput:
 
     ``xyz (B, 3)`` metres and ``quat (B, 4)`` unit ``(w, x, y, z)``, ``w >= 0``: global pose
     ``T_wc``; ``rel_xyz``, ``rel_quat``: ``T_rel = T_{t-1}^{-1} T_t``; ``seg_logits (B, C, H, W)``;
-    ``depth (B, 1, H, W)`` predicted metres; ``taps``: named intermediate features.
+    ``depth (B, 1, H, W)`` predicted metres; ``anchor_logits (B, N)``: the global pose head's scores
+    of its position anchors ``anchor_xyz (N, 3)`` metres (config ``global_pose_anchors``; else None);
+    ``taps``: named intermediate features.
     """
 
     xyz: torch.Tensor | None = None
@@ -54,6 +58,8 @@ class StepOutput:
     rel_quat: torch.Tensor | None = None
     seg_logits: torch.Tensor | None = None
     depth: torch.Tensor | None = None
+    anchor_logits: torch.Tensor | None = None
+    anchor_xyz: torch.Tensor | None = None
     taps: dict[str, torch.Tensor] = field(default_factory=dict)
 
 
@@ -99,7 +105,7 @@ class GlobalPoseStream(nn.Module):
         self.res5 = make_stage(c[2], cfg.widths[3], c[3], cfg.depths[3], stride=2)
         self.temporal_fusion = AdaptiveWeightedFusion(c[3], c[3]) if cfg.temporal_fusion else None
         flatten = cfg.global_res5_size if cfg.global_pose_pooling == "flatten" else None
-        self.head = PoseHead(c[3], cfg.fc_width, cfg.dropout, flatten)
+        self.head = PoseHead(c[3], cfg.fc_width, cfg.dropout, flatten, cfg.global_pose_anchors)
 
 
 class OdometryStream(nn.Module):
@@ -115,7 +121,7 @@ class OdometryStream(nn.Module):
     def forward(self, prev_res4: torch.Tensor, res4: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """``(B, C4, h, w)`` twice -> ``rel_xyz (B, 3)``, ``rel_quat (B, 4)``, Res5 output."""
         res5 = self.res5(torch.cat((prev_res4, res4), 1))
-        xyz, quat = self.head(res5)
+        xyz, quat, _ = self.head(res5)
         return xyz, quat, res5
 
 
@@ -162,14 +168,22 @@ class VLocNetPP(nn.Module):
         self.register_buffer("std", torch.tensor(config.std).view(1, 3, 1, 1), persistent=False)
         init_weights(self)
 
-    def set_position_prior(self, xyz: Iterable[float], scale: Iterable[float] | float = 1.0) -> None:
-        """Centre the global translation output on ``xyz`` with spread ``scale`` (metres, world frame;
-        e.g. the mean and standard deviation of the training positions), so the head regresses
-        offsets of order one instead of walking to the scene from the origin."""
+    def set_position_prior(self, positions: np.ndarray, seed: int = 0) -> None:
+        """Fit the global translation output to the training positions ``(M, 3)``, metres, world frame.
+
+        The paper's head (fc2 regressing the position) is centred on their mean with their spread (at
+        least 1 m per axis) as its scale, so fc2 regresses numbers of order one instead of walking to
+        the scene from the origin. A head with ``global_pose_anchors`` gets its anchors at their
+        k-means centres (``seed`` fixes them)."""
+        positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
         head = self.global_stream.head
+        if self.config.global_pose_anchors:
+            anchors = kmeans_anchors(positions, self.config.global_pose_anchors, seed)
+            head.set_anchors(torch.as_tensor(anchors, dtype=head.anchor_xyz.dtype, device=head.anchor_xyz.device))
+            return
         with torch.no_grad():
-            head.xyz_offset.copy_(torch.as_tensor(list(xyz), dtype=head.xyz_offset.dtype))
-            head.xyz_scale.copy_(torch.as_tensor(scale, dtype=head.xyz_scale.dtype).expand(3))
+            head.xyz_offset.copy_(torch.as_tensor(positions.mean(axis=0), dtype=head.xyz_offset.dtype))
+            head.xyz_scale.copy_(torch.as_tensor(np.maximum(positions.std(axis=0), 1.0), dtype=head.xyz_scale.dtype))
 
     # ------------------------------------------------------------------ streaming
 
@@ -277,7 +291,9 @@ class VLocNetPP(nn.Module):
         for block in g.res5[1:]:
             h = block(h)
         taps["res5c"] = h
-        out.xyz, out.quat = g.head(h)
+        out.xyz, out.quat, out.anchor_logits = g.head(h)
+        if out.anchor_logits is not None:
+            out.anchor_xyz = g.head.anchor_xyz
 
     def global_pool(self, x: torch.Tensor) -> torch.Tensor:
         """``(B, C, h, w) -> (B, C, ceil(h/p), ceil(w/p))``: average pooling by ``config.global_downsample`` (``p``), for
