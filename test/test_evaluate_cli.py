@@ -160,7 +160,7 @@ def test_evaluate_names_the_tasks_a_checkpoint_was_not_trained_for(evaluated, tm
     ({"stage": "stl-seg", "init": []}, ["loc", "vo"]),
     # stl-loc takes only the trunk of an stl-vo init and the encoder of an stl-seg one (as its global stream)
     ({"stage": "stl-loc", "init": [{"stage": "stl-seg"}, {"stage": "stl-vo"}]}, ["vo", "seg"]),
-    ({"stage": "stl-vo", "init": [{"stage": "stl-loc"}]}, ["seg"]),  # loaded whole
+    ({"stage": "stl-vo", "init": [{"stage": "stl-loc"}]}, ["loc", "seg"]),  # only the trunk, as the other way round
     ({"stage": "mtl", "init": []}, []),
     ({"stage": "mtl", "step": 0, "init": [{"stage": "stl-loc"}, {"stage": "stl-seg"}]}, ["vo"]),  # assembled, no odometry stage
     ({}, None),

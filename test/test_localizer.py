@@ -32,10 +32,13 @@ def _frames(n: int, seed: int = 0, size: tuple[int, int] = (H, W)) -> list[np.nd
 
 @pytest.fixture(scope="module")
 def checkpoint(tmp_path_factory) -> Path:
-    """An untrained lite network whose odometry head says "0.3 m forward, no rotation" for every frame pair.
+    """An untrained lite network whose odometry head says "0.3 m forward, no rotation" for every frame pair
+    and whose depth head says about 5.5 m everywhere (the geometric mean of its range).
 
-    A random odometry head can output any rotation (half a turn), which warps every previous-frame
-    feature out of view; a small known motion keeps the warp in view, so depth and intrinsics reach the pose.
+    A random odometry head can output any rotation (half a turn), and a random depth head can put every
+    pixel at its 0.1 m bound (behind the camera after 0.3 m forward): either warps every previous-frame
+    feature out of view; a small known motion at a known depth keeps the warp in view, so given depth
+    and intrinsics reach the pose.
     """
     calib = {"pose_variance": POSE_VAR, "odometry_variance": ODO_VAR}
     torch.manual_seed(1)
@@ -45,6 +48,9 @@ def checkpoint(tmp_path_factory) -> Path:
         for fc in (head.fc_xyz, head.fc_quat):
             fc.weight.mul_(1e-3)
         head.fc_xyz.bias.copy_(torch.tensor([0.0, 0.0, 0.3]))
+        head.fc_quat.bias.copy_(torch.tensor([1.0, 0.0, 0.0, 0.0]))  # the network-wide init zeroes it
+        model.depth_head.out.weight.mul_(1e-3)
+        model.depth_head.out.bias.zero_()
     return save_checkpoint(tmp_path_factory.mktemp("loc") / "lite", model, {"calibration": calib})
 
 

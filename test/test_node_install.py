@@ -15,7 +15,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 import rclpy
-from node_fixtures import Harness, InstalledNode, camera_frames, diagnostic_values, domain_id, image_msg, params_file, wait_until
+from node_fixtures import (
+    Harness,
+    InstalledNode,
+    camera_frames,
+    diagnostic_values,
+    domain_id,
+    float32_tolerance,
+    image_msg,
+    params_file,
+    wait_until,
+)
 from sensor_msgs.msg import Image
 
 from vlocnetpp_core.checkpoint import init_checkpoint
@@ -70,18 +80,21 @@ def _by_stamp(harness: Harness, key: str, stamp: float):
 def test_outputs_have_the_input_stamps_and_frames_and_equal_localizer_step(running, checkpoint: Path):
     node, harness = running
     reference = Localizer.from_checkpoint(checkpoint, num_threads=1)
+    exact = Localizer.from_checkpoint(checkpoint, num_threads=1)  # the same network in float64: the rounding to allow
+    exact.model.double()
     frames = camera_frames(4, height=240, width=320, seed=1)
     stamps = [100.0 + 0.05 * k for k in range(4)]
     for frame, stamp in zip(frames, stamps, strict=True):
         _send(harness, image_msg(frame, "rgb8", stamp, frame_id="camera_optical"))
-        expected = reference.step(frame, "rgb8", stamp)
+        expected, exact_pose = reference.step(frame, "rgb8", stamp), exact.step(frame, "rgb8", stamp)
         pose, odom, seg = (_by_stamp(harness, k, stamp) for k in ("pose", "odom", "seg"))
         assert pose.header.frame_id == "map" and odom.header.frame_id == "odom"
         assert odom.child_frame_id == "camera_optical" and seg.header.frame_id == "camera_optical"
         assert pose.header.stamp == odom.header.stamp == seg.header.stamp == conversions.seconds_to_stamp(stamp)
         t, q = conversions.pose_from_msg(pose.pose)
-        np.testing.assert_allclose(t, expected.t, atol=1e-5)
-        np.testing.assert_allclose(q, expected.q, atol=1e-5)
+        want = np.concatenate((expected.t, expected.q))
+        tol = float32_tolerance(want, np.concatenate((exact_pose.t, exact_pose.q)))
+        assert np.all(np.abs(np.concatenate((t, q)) - want) <= tol), (t, q, want, tol)
         ot, oq = conversions.pose_from_msg(odom.pose.pose)
         np.testing.assert_allclose(ot, expected.odom_t, atol=1e-5)
         np.testing.assert_allclose(oq, expected.odom_q, atol=1e-5)

@@ -25,7 +25,17 @@ import pytest
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
-from node_fixtures import Harness, InstalledNode, camera_frames, diagnostic_values, domain_id, image_msg, params_file, wait_until
+from node_fixtures import (
+    Harness,
+    InstalledNode,
+    camera_frames,
+    diagnostic_values,
+    domain_id,
+    float32_tolerance,
+    image_msg,
+    params_file,
+    wait_until,
+)
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import Header
 
@@ -157,20 +167,13 @@ def _assert_first_frame_pose(got: PoseStamped, localizer: Localizer, frame: np.n
     """``got`` is the pose of ``frame`` localised from the image alone (the stamp jump reset the state; a
     first frame has nothing to warp, so the depth image sent with it does not change its outputs).
 
-    Node and ``localizer`` run the same backend with one thread on the same pixels, so they do the
-    same float32 operations, but a kernel may sum in another order (MKL and oneDNN pick by memory
-    alignment): allowed is the float32 rounding error of this computation, measured as the largest
-    distance of ``want``'s position (and of its quaternion) to ``exact``, the network run in float64, four
-    times over (two summation orders each err by about that much, in any component), plus a few
-    roundings of the values. (The untrained network's activations reach hundreds and the flattened
-    global head sums 4096 products in fc1, so that error is tens of float32 eps.)"""
+    Node and ``localizer`` run the same float32 operations, perhaps summed in another order:
+    :func:`node_fixtures.float32_tolerance` against ``exact``, the network run in float64."""
     result = localizer.step(frame, "rgb8", stamp)
     assert result.reset_reason == "start"
     want = np.concatenate((result.t, result.q))
-    rounding = np.abs(want - exact)
-    rounding = np.repeat([rounding[:3].max(), rounding[3:].max()], [3, 4])
-    tol = 4 * rounding + 8 * np.finfo(np.float32).eps * np.maximum(1.0, np.abs(want))
-    assert np.all(np.abs(_pose(got) - want) <= tol), (_pose(got), want, rounding)
+    tol = float32_tolerance(want, exact)
+    assert np.all(np.abs(_pose(got) - want) <= tol), (_pose(got), want, tol)
 
 
 def _throttled(output: str, lifetime_s: float) -> None:
