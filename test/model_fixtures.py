@@ -67,3 +67,27 @@ def random_clip_batch(batch: int, frames: int, width: int, height: int, num_clas
         "has_depth": torch.ones(batch, dtype=torch.bool),
         "has_labels": torch.ones(batch, dtype=torch.bool),
     }
+
+
+def known_motion_lite(seed: int) -> torch.nn.Module:
+    """An untrained lite network (seeded) whose odometry head says "0.3 m forward, no rotation" for every
+    frame pair and whose depth head says about 5.5 m everywhere (the geometric mean of its range).
+
+    A random odometry head can output any rotation (half a turn), and a random depth head can put every
+    pixel at its 0.1 m bound (behind the camera after 0.3 m forward): either warps previous-frame
+    features out of view, or to the border where out-of-view samples are zeroed, so a rounding of a
+    few eps flips a sample and the streamed pose jumps. A small known motion at a known depth keeps the
+    warp in view and smooth, so given depth and intrinsics reach the pose and two float32 runs agree."""
+    from vlocnetpp_core.model import VLocNetPP
+
+    torch.manual_seed(seed)
+    model = VLocNetPP(load_model_config("lite"))
+    head = model.odometry.head
+    with torch.no_grad():
+        for fc in (head.fc_xyz, head.fc_quat):
+            fc.weight.mul_(1e-3)
+        head.fc_xyz.bias.copy_(torch.tensor([0.0, 0.0, 0.3]))
+        head.fc_quat.bias.copy_(torch.tensor([1.0, 0.0, 0.0, 0.0]))  # the network-wide init zeroes it
+        model.depth_head.out.weight.mul_(1e-3)
+        model.depth_head.out.bias.zero_()
+    return model

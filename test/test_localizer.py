@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
+from model_fixtures import known_motion_lite
 from scipy.spatial.transform import Rotation
 
 from vlocnetpp_core import geometry
@@ -15,7 +16,6 @@ from vlocnetpp_core.checkpoint import save_checkpoint
 from vlocnetpp_core.errors import DataError, UserError
 from vlocnetpp_core.intrinsics import Intrinsics
 from vlocnetpp_core.localizer import UNKNOWN_VARIANCE, Localizer
-from vlocnetpp_core.model import VLocNetPP, load_model_config
 from vlocnetpp_core.preprocess import FrameError, network_input
 
 POSE_VAR = [0.04, 0.05, 0.06, 1e-3, 2e-3, 3e-3]
@@ -32,25 +32,9 @@ def _frames(n: int, seed: int = 0, size: tuple[int, int] = (H, W)) -> list[np.nd
 
 @pytest.fixture(scope="module")
 def checkpoint(tmp_path_factory) -> Path:
-    """An untrained lite network whose odometry head says "0.3 m forward, no rotation" for every frame pair
-    and whose depth head says about 5.5 m everywhere (the geometric mean of its range).
-
-    A random odometry head can output any rotation (half a turn), and a random depth head can put every
-    pixel at its 0.1 m bound (behind the camera after 0.3 m forward): either warps every previous-frame
-    feature out of view; a small known motion at a known depth keeps the warp in view, so given depth
-    and intrinsics reach the pose.
-    """
+    """:func:`model_fixtures.known_motion_lite`: an untrained network whose warp stays in view."""
     calib = {"pose_variance": POSE_VAR, "odometry_variance": ODO_VAR}
-    torch.manual_seed(1)
-    model = VLocNetPP(load_model_config("lite"))
-    head = model.odometry.head
-    with torch.no_grad():
-        for fc in (head.fc_xyz, head.fc_quat):
-            fc.weight.mul_(1e-3)
-        head.fc_xyz.bias.copy_(torch.tensor([0.0, 0.0, 0.3]))
-        head.fc_quat.bias.copy_(torch.tensor([1.0, 0.0, 0.0, 0.0]))  # the network-wide init zeroes it
-        model.depth_head.out.weight.mul_(1e-3)
-        model.depth_head.out.bias.zero_()
+    model = known_motion_lite(1)
     return save_checkpoint(tmp_path_factory.mktemp("loc") / "lite", model, {"calibration": calib})
 
 
