@@ -26,6 +26,7 @@ from rclpy.parameter import Parameter
 from sensor_msgs.msg import CompressedImage, Image
 from std_msgs.msg import Header
 
+from vlocnetpp_core.localizer import Localizer
 from vlocnetpp_ros import conversions
 
 OUTPUTS = {"pose": ("vlocnet/pose", PoseStamped), "pwc": ("vlocnet/pose_with_covariance", PoseWithCovarianceStamped),
@@ -194,15 +195,23 @@ class InstalledNode:
         return code, time.monotonic() - start
 
 
+def float64_localizer(checkpoint: Path) -> Localizer:
+    """A one-thread ``Localizer`` of ``checkpoint`` with the network in float64: the exact values that
+    :func:`float32_tolerance` measures float32 rounding against."""
+    exact = Localizer.from_checkpoint(checkpoint, num_threads=1)
+    exact.model.double()
+    return exact
+
+
 def float32_tolerance(want: np.ndarray, exact: np.ndarray) -> np.ndarray:
     """Allowed difference between two float32 runs of the same network on the same pixels (node and
     ``Localizer``: a kernel may sum in another order, MKL and oneDNN picking by memory alignment), per
-    component of ``want`` (``(x, y, z, qw, qx, qy, qz)`` or any vector split 3 + rest): four times the
-    largest distance of ``want``'s position (and of the rest) to ``exact``, the same network run in
-    float64 (two summation orders each err by about that much, in any component), plus a few roundings
-    of the values. An untrained network's activations reach hundreds, fc1 of the flattened global head
-    sums 4096 products and the anchor softmax turns a logit's rounding into metres' worth of weight,
-    so that error is many float32 eps."""
+    component of the pose ``want`` ``(x, y, z, qw, qx, qy, qz)``: four times the largest distance of
+    ``want``'s position (and of its quaternion) to ``exact``, the same network run in float64 (two
+    summation orders each err by about that much, in any component), plus a few roundings of the
+    values. An untrained network's activations reach hundreds, fc1 of the flattened global head sums
+    4096 products and the anchor softmax turns a logit's rounding into metres' worth of weight, so
+    that error is many float32 eps."""
     rounding = np.abs(np.asarray(want) - np.asarray(exact))
-    rounding = np.repeat([rounding[:3].max(), rounding[3:].max() if len(rounding) > 3 else 0.0], [3, len(rounding) - 3])
+    rounding = np.repeat([rounding[:3].max(), rounding[3:].max()], [3, 4])
     return 4 * rounding + 8 * np.finfo(np.float32).eps * np.maximum(1.0, np.abs(want))

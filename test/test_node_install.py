@@ -23,6 +23,7 @@ from node_fixtures import (
     diagnostic_values,
     domain_id,
     float32_tolerance,
+    float64_localizer,
     image_msg,
     params_file,
     wait_until,
@@ -82,8 +83,7 @@ def _by_stamp(harness: Harness, key: str, stamp: float):
 def test_outputs_have_the_input_stamps_and_frames_and_equal_localizer_step(running, checkpoint: Path):
     node, harness = running
     reference = Localizer.from_checkpoint(checkpoint, num_threads=1)
-    exact = Localizer.from_checkpoint(checkpoint, num_threads=1)  # the same network in float64: the rounding to allow
-    exact.model.double()
+    exact = float64_localizer(checkpoint)  # the rounding to allow
     frames = camera_frames(4, height=240, width=320, seed=1)
     stamps = [100.0 + 0.05 * k for k in range(4)]
     for frame, stamp in zip(frames, stamps, strict=True):

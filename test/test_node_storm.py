@@ -32,6 +32,7 @@ from node_fixtures import (
     diagnostic_values,
     domain_id,
     float32_tolerance,
+    float64_localizer,
     image_msg,
     params_file,
     wait_until,
@@ -157,9 +158,7 @@ def _pose(msg: PoseStamped) -> np.ndarray:
 
 def _float64_first_frame_pose(checkpoint: Path, frame: np.ndarray, stamp: float) -> np.ndarray:
     """``(x, y, z, qw, qx, qy, qz)`` of ``frame`` localised from the image alone by the network run in float64."""
-    exact = Localizer.from_checkpoint(checkpoint, num_threads=1)
-    exact.model.double()
-    result = exact.step(frame, "rgb8", stamp)
+    result = float64_localizer(checkpoint).step(frame, "rgb8", stamp)
     return np.concatenate((result.t, result.q))
 
 
