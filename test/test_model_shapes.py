@@ -14,8 +14,9 @@ from model_fixtures import (
     one_thread,  # noqa: F401  (autouse: one thread per test)
 )
 
+from vlocnetpp_core.geometry import quat_mul
 from vlocnetpp_core.model import STREAMS, ModelConfig, VLocNetPP, load_model_config, params_per_stream
-from vlocnetpp_core.model.anchors import kmeans_anchors
+from vlocnetpp_core.model.anchors import kmeans_anchors, rotation_anchors
 
 
 def expected_taps(cfg: ModelConfig, batch: int, width: int, height: int) -> dict[str, tuple[int, ...]]:
@@ -120,7 +121,7 @@ def test_anchor_head_mixes_anchors_plus_offsets():
     head = model.global_stream.head
     assert head.fc_anchor.out_features == 3 and head.fc_xyz.out_features == 9
     positions = np.array([[0.0, 0.0, 0.0], [50.0, 0.0, 1.0], [0.0, -40.0, 2.0]]).repeat(4, axis=0)
-    model.set_position_prior(positions)
+    model.set_pose_prior(positions)
     anchors = head.anchor_xyz.clone()
     assert sorted(anchors[:, 2].tolist()) == [0.0, 1.0, 2.0]  # one anchor per cluster of positions
     offsets = torch.tensor([[1.0, 2.0, 3.0], [-1.0, 0.0, 0.5], [0.0, 0.0, -2.0]])
@@ -130,16 +131,61 @@ def test_anchor_head_mixes_anchors_plus_offsets():
         head.fc_xyz.weight.zero_()
         head.fc_xyz.bias.copy_(offsets.flatten())
         head.fc_anchor.bias.copy_(torch.tensor([0.0, 30.0, 0.0]))
-        xyz, _, logits = head(x)
+        xyz, _, logits, _ = head(x)
         torch.testing.assert_close(xyz[0], anchors[1] + offsets[1])
         assert logits.shape == (1, 3)
         head.fc_anchor.bias.zero_()
-        xyz, _, _ = head(x)
+        xyz, _, _, _ = head(x)
         torch.testing.assert_close(xyz[0], (anchors + offsets).mean(0))
     with pytest.raises(ValueError, match="3 position anchors"):
         head.set_anchors(torch.zeros(4, 3))
     out, _ = model.step(torch.rand(1, 3, 128, 224), tasks=("loc",))
     assert out.anchor_logits.shape == (1, 3) and out.anchor_xyz is head.anchor_xyz
+
+
+def test_rotation_anchor_head_turns_the_best_anchors():
+    """With rotation anchors the quaternion is the softmax-weighted mix of anchor * residual: a dominant score
+    gives its anchor turned by its residual (zero residual: the anchor itself), whatever the sign of the anchor."""
+    torch.manual_seed(0)
+    cfg = lite(global_rotation_anchors=2)
+    model = VLocNetPP(cfg).eval()
+    head = model.global_stream.head
+    assert head.fc_rotation_anchor.out_features == 2 and head.fc_quat.out_features == 8
+    yaw = [np.array([np.cos(a / 2), 0.0, 0.0, np.sin(a / 2)]) for a in (0.3, 2.0)]
+    quats = np.stack([yaw[0]] * 5 + [-yaw[1]] * 5)  # the second cluster given with w < 0: the same rotation
+    model.set_pose_prior(np.zeros((10, 3)), quats)
+    anchors = head.anchor_quat.clone()
+    assert {round(float(a), 4) for a in anchors[:, 3]} == {round(float(np.sin(0.15)), 4), round(float(np.sin(1.0)), 4)}
+    x = torch.randn(1, cfg.stage_channels[3], *cfg.global_res5_size)
+    turn = torch.tensor([np.cos(0.05), 0.0, 0.0, np.sin(0.05)], dtype=torch.float32)  # 0.1 rad about z
+    with torch.no_grad():
+        head.fc_rotation_anchor.weight.zero_()
+        head.fc_quat.weight.zero_()
+        head.fc_quat.bias.zero_()
+        head.fc_rotation_anchor.bias.copy_(torch.tensor([0.0, 30.0]))
+        _, quat, _, logits = head(x)
+        torch.testing.assert_close(quat[0], anchors[1])
+        head.fc_quat.bias[4:].copy_(turn - torch.tensor([1.0, 0.0, 0.0, 0.0]))
+        _, quat, _, _ = head(x)
+        torch.testing.assert_close(quat[0], quat_mul(anchors[1], turn))
+    assert logits.shape == (1, 2)
+    with pytest.raises(ValueError, match="2 rotation anchors"):
+        head.set_rotation_anchors(torch.zeros(3, 4))
+    with pytest.raises(ValueError, match="quaternions"):
+        model.set_pose_prior(np.zeros((10, 3)))
+    out, _ = model.step(torch.rand(1, 3, 128, 224), tasks=("loc",))
+    assert out.rotation_logits.shape == (1, 2) and out.anchor_quat is head.anchor_quat
+
+
+def test_rotation_anchors_are_unit_quaternions_of_the_clusters():
+    rng = np.random.default_rng(0)
+    angles = np.concatenate([rng.normal(a, 0.01, 40) for a in (0.0, 1.5, 3.1)])
+    quats = np.stack([np.cos(angles / 2), np.zeros_like(angles), np.zeros_like(angles), np.sin(angles / 2)], 1)
+    quats[::2] *= -1  # either sign of each rotation
+    anchors = rotation_anchors(quats, 3, seed=0)
+    np.testing.assert_allclose(np.linalg.norm(anchors, axis=1), 1.0, atol=1e-9)
+    assert (anchors[:, 0] >= 0).all()
+    np.testing.assert_allclose(np.sort(2 * np.arctan2(anchors[:, 3], anchors[:, 0])), [0.0, 1.5, 3.1], atol=0.02)
 
 
 def test_kmeans_anchors_cover_the_positions():

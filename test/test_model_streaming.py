@@ -76,7 +76,7 @@ def test_position_prior_shifts_the_global_translation():
     positions = np.array([[100.0, -20.0, 3.5]]) + np.array([[-4.0, 0.0, 0.1], [4.0, 0.0, -0.1]])
     with torch.no_grad():
         before, _ = model.step(image, tasks=("loc",))
-        model.set_position_prior(positions)
+        model.set_pose_prior(positions)
         after, _ = model.step(image, tasks=("loc",))
     torch.testing.assert_close(model.global_stream.head.xyz_scale, torch.tensor([4.0, 1.0, 1.0]))
     torch.testing.assert_close(after.xyz, torch.tensor([[100.0, -20.0, 3.5]]) + torch.tensor([4.0, 1.0, 1.0]) * before.xyz)

@@ -14,7 +14,8 @@ Per clip of ``T`` frames (``outputs[t]`` are :class:`~vlocnetpp_core.model.StepO
   global predictions and in their units, share their weights.
   With position anchors (config ``global_pose_anchors``, a departure from the paper) ``loc`` adds
   the cross-entropy of the anchor scores against each frame's nearest anchor (weight 1, part
-  ``anchor``): the classification that places the frame, before the offset refines it.
+  ``anchor``): the classification that places the frame, before the offset refines it. Rotation
+  anchors (config ``global_rotation_anchors``) add theirs likewise (part ``anchor_q``).
 * ``vo`` (Eq. 3 of the odometry): the odometry outputs against ``rel_t, rel_q`` over frames
   ``1..T-1`` (frame 0 has no previous frame), weights ``s_x_vo, s_q_vo``.
 * ``seg``: cross-entropy over pixels whose label is not 255, averaged over labelled pixels.
@@ -119,7 +120,7 @@ class VLocNetLoss(nn.Module):
     ``forward(outputs, batch)`` takes the ``T`` step outputs of a clip and the batch dict of
     ``ClipDataset`` (``t, q, rel_t, rel_q (B, T, 3|4)``, ``labels (B, T, H, W)``,
     ``depth (B, T, 1, H, W)``) and returns ``(total, parts)``; ``parts`` holds the raw errors
-    (``x``, ``q``, ``x_rel``, ``q_rel``, ``anchor``, ``x_vo``, ``q_vo``, ``seg``, ``depth``) and the task
+    (``x``, ``q``, ``x_rel``, ``q_rel``, ``anchor``, ``anchor_q``, ``x_vo``, ``q_vo``, ``seg``, ``depth``) and the task
     losses (``loc``, ``vo``), detached.
     """
 
@@ -165,6 +166,9 @@ class VLocNetLoss(nn.Module):
             if outputs[0].anchor_logits is not None:
                 parts["anchor"] = anchor_loss([o.anchor_logits for o in outputs], outputs[0].anchor_xyz, batch["t"][:, :T])
                 loc = loc + parts["anchor"]
+            if outputs[0].rotation_logits is not None:
+                parts["anchor_q"] = rotation_anchor_loss([o.rotation_logits for o in outputs], outputs[0].anchor_quat, batch["q"][:, :T])
+                loc = loc + parts["anchor_q"]
             parts["loc"] = loc
             terms.append(loc)
         if "vo" in self.tasks and T > 1:
@@ -194,6 +198,15 @@ def anchor_loss(logits: Sequence[torch.Tensor], anchor_xyz: torch.Tensor, t: tor
     logits_btn = torch.stack(list(logits), 1)
     nearest_bt = torch.cdist(t.to(anchor_xyz.dtype), anchor_xyz.expand(t.shape[0], -1, -1)).argmin(-1)
     return F.cross_entropy(logits_btn.flatten(0, 1), nearest_bt.flatten())
+
+
+def rotation_anchor_loss(logits: Sequence[torch.Tensor], anchor_quat: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
+    """Mean cross-entropy of the rotation-anchor scores ``logits[i] (B, R)`` of frame ``i`` against each
+    frame's nearest anchor rotation (``anchor_quat (R, 4)``, ground-truth quaternions ``q (B, T, 4)``;
+    nearest: the largest ``|q . anchor|``)."""
+    logits_btr = torch.stack(list(logits), 1)
+    nearest_bt = torch.einsum("btc,rc->btr", q.to(anchor_quat.dtype), anchor_quat).abs().argmax(-1)
+    return F.cross_entropy(logits_btr.flatten(0, 1), nearest_bt.flatten())
 
 
 def _sum_over_frames(fn, predictions: list[torch.Tensor], targets: torch.Tensor) -> tuple[torch.Tensor, int]:

@@ -116,8 +116,8 @@ class Trainer:
 
         args = self.args
         self.model = model = VLocNetPP(self.config)
-        positions = np.array([r.t for r in self.train_index.records])
-        model.set_position_prior(positions, seed=args.seed)
+        records = self.train_index.records
+        model.set_pose_prior(np.array([r.t for r in records]), np.array([r.q for r in records]), seed=args.seed)
         model.to(self.device)
         self.criterion = VLocNetLoss(self.tasks, depth=self.config.warping, s_q_init=args.s_q_init).to(self.device)
         self.sources = load_inits(model, self.criterion, args.init, args.stage, self.log) if args.init else []

@@ -1,4 +1,5 @@
-"""Position anchors of the global pose head (config ``global_pose_anchors``): k-means of training positions."""
+"""Anchors of the global pose head: k-means of the training positions (config ``global_pose_anchors``) and
+of the training rotations (config ``global_rotation_anchors``)."""
 
 from __future__ import annotations
 
@@ -7,15 +8,15 @@ from scipy.cluster.vq import kmeans2
 
 
 def kmeans_anchors(positions: np.ndarray, count: int, seed: int = 0) -> np.ndarray:
-    """``count`` anchor positions ``(count, 3)`` metres from training positions ``(M, 3)`` metres (world frame).
+    """``count`` anchor points ``(count, D)`` from training points ``(M, D)`` (positions: ``D = 3``, metres, world frame).
 
     The k-means centres of the positions (k-means++ start, ``seed`` fixes the result). With fewer
     distinct positions than ``count`` (a tiny dataset) every distinct position is an anchor and the
     list repeats to ``count``: a repeated anchor splits its score without changing the position.
     """
     positions = np.asarray(positions, dtype=np.float64)
-    if positions.ndim != 2 or positions.shape[1] != 3 or len(positions) == 0:
-        raise ValueError(f"positions must be a non-empty (M, 3) array, got shape {positions.shape}")
+    if positions.ndim != 2 or len(positions) == 0:
+        raise ValueError(f"positions must be a non-empty (M, D) array, got shape {positions.shape}")
     if count < 1:
         raise ValueError(f"count must be >= 1, got {count}")
     distinct = np.unique(positions, axis=0)
@@ -28,3 +29,17 @@ def kmeans_anchors(positions: np.ndarray, count: int, seed: int = 0) -> np.ndarr
         far = np.linalg.norm(positions[:, None] - np.delete(centres, k, axis=0)[None], axis=2).min(axis=1).argmax()
         centres[k] = positions[far]
     return centres
+
+
+def rotation_anchors(quats: np.ndarray, count: int, seed: int = 0) -> np.ndarray:
+    """``count`` anchor rotations ``(count, 4)``, unit ``(w, x, y, z)`` with ``w >= 0``, from training
+    quaternions ``(M, 4)`` (world frame): the k-means centres of the quaternions on the ``w >= 0``
+    hemisphere (``q`` and ``-q`` are one rotation), normalised. Rotations near a half turn sit on
+    both edges of that hemisphere and may get an anchor on each, which is harmless."""
+    quats = np.asarray(quats, dtype=np.float64)
+    if quats.ndim != 2 or quats.shape[1] != 4:
+        raise ValueError(f"quats must be an (M, 4) array, got shape {quats.shape}")
+    quats = quats / np.linalg.norm(quats, axis=1, keepdims=True) * np.where(quats[:, :1] < 0, -1.0, 1.0)
+    centres = kmeans_anchors(quats, count, seed)
+    centres = centres / np.maximum(np.linalg.norm(centres, axis=1, keepdims=True), 1e-12)
+    return centres * np.where(centres[:, :1] < 0, -1.0, 1.0)

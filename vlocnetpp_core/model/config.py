@@ -41,7 +41,7 @@ class ModelConfig:
     are not silently switched off); the ``semantic_*``, ``num_classes`` and ``depth_*`` sizes are
     unused.
 
-    Three departures from the paper, all off by default (``lite`` uses them; ablation in
+    Four departures from the paper, all off by default (``lite`` uses them; ablation in
     docs/results.md): ``global_downsample`` average-pools the trunk's Res3 map by this factor before
     the global stream's Res4, so the global stream runs at a lower resolution than the trunk, the
     odometry stream and the semantic stream (whose Res5c map is pooled by the same factor for the
@@ -51,7 +51,9 @@ class ModelConfig:
     the image but fixes the input size to ``input_size``;
     ``global_pose_anchors: N`` (0: the paper's fc2 regressing the position) makes the position
     head score ``N`` anchor positions (k-means of the training positions) and regress an offset
-    from each: the position is the softmax-weighted sum of ``anchor + offset``.
+    from each: the position is the softmax-weighted sum of ``anchor + offset``;
+    ``global_rotation_anchors: R`` likewise for the rotation (0: fc3 regresses the quaternion): ``R``
+    anchor rotations (k-means of the training quaternions) scored, each turned by a residual rotation.
     """
 
     name: str = "paper"
@@ -77,6 +79,7 @@ class ModelConfig:
     global_downsample: int = 1  # the global stream pools the trunk's Res3 map by this factor
     global_pose_pooling: str = "average"  # "average" (paper: global average pooling) or "flatten" (whole Res5c map into fc1)
     global_pose_anchors: int = 0  # position anchors of the global pose head (0: the paper's direct regression)
+    global_rotation_anchors: int = 0  # rotation anchors of the global pose head (0: the paper's direct regression)
 
     def __post_init__(self) -> None:
         problems = self.problems()
@@ -104,8 +107,9 @@ class ModelConfig:
             out.append(f"depth_range must be 0 < min < max, got {self.depth_range}")
         if not 0 <= self.dropout < 1:
             out.append(f"dropout must be in [0, 1), got {self.dropout}")
-        if self.global_pose_anchors < 0:
-            out.append(f"global_pose_anchors must be >= 0 (0: the paper's direct position regression), got {self.global_pose_anchors}")
+        for key in ("global_pose_anchors", "global_rotation_anchors"):
+            if getattr(self, key) < 0:
+                out.append(f"{key} must be >= 0 (0: the paper's direct regression), got {getattr(self, key)}")
         if self.global_pose_pooling not in POSE_POOLINGS:
             out.append(f"global_pose_pooling must be one of {list(POSE_POOLINGS)}, got {self.global_pose_pooling!r}")
         needs_semantics = [k for k in ("warping", "semantic_fusion") if getattr(self, k)]

@@ -8,14 +8,14 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from vlocnetpp_core.geometry import quat_normalize
+from vlocnetpp_core.geometry import quat_mul, quat_normalize
 from vlocnetpp_core.model.backbone import PostNorm
 
 
 class PoseHead(nn.Module):
     """``BN -> ELU -> GAP (or flatten) -> fc1 (ELU, dropout) -> fc2 xyz (3), fc3 quaternion (4)``.
 
-    ``(B, C, h, w) -> (xyz (B, 3), quat (B, 4), anchor_logits (B, N) or None)``. With
+    ``(B, C, h, w) -> (xyz (B, 3), quat (B, 4), anchor_logits (B, N) or None, rotation_logits (B, R) or None)``. With
     ``flatten_size=(h, w)`` the map is flattened into fc1 (``C * h * w`` inputs) instead of averaged,
     and only maps of that size are accepted (``ValueError`` otherwise). The quaternion is normalised
     to a unit ``(w, x, y, z)`` with ``w >= 0``. fc3 starts at the identity rotation.
@@ -27,10 +27,17 @@ class PoseHead(nn.Module):
     (metres, world frame; a buffer set by :meth:`set_anchors`), fc2 regresses an offset in metres
     from each (``3 N`` outputs), and ``xyz = sum_k softmax(scores)_k (anchor_xyz_k + offset_k)``; the
     scores are returned for the classification loss (``None`` without anchors).
+
+    Rotation, with ``rotation_anchors=R`` (else fc3 regresses the quaternion, the paper): a linear
+    layer scores the ``R`` anchor rotations ``anchor_quat (R, 4)`` (a buffer set by
+    :meth:`set_rotation_anchors`), fc3 regresses a residual rotation for each (``4 R`` outputs, the
+    departure from the identity quaternion, in the camera frame), and the quaternion is the
+    softmax-weighted sum of the turned anchors ``anchor_k * residual_k``, each first brought onto the
+    hemisphere of the best-scored one, normalised.
     """
 
     def __init__(self, in_channels: int, fc_width: int, dropout: float, flatten_size: tuple[int, int] | None = None,
-                 anchors: int = 0):
+                 anchors: int = 0, rotation_anchors: int = 0):
         super().__init__()
         self.norm = PostNorm(in_channels)
         self.flatten_size = flatten_size
@@ -38,8 +45,11 @@ class PoseHead(nn.Module):
         self.fc1 = nn.Linear(in_channels * cells, fc_width)
         self.dropout = nn.Dropout(dropout)
         self.fc_xyz = nn.Linear(fc_width, 3 * max(anchors, 1))
-        self.fc_quat = nn.Linear(fc_width, 4)
+        self.fc_quat = nn.Linear(fc_width, 4 * max(rotation_anchors, 1))
         self.fc_anchor = nn.Linear(fc_width, anchors) if anchors else None
+        self.fc_rotation_anchor = nn.Linear(fc_width, rotation_anchors) if rotation_anchors else None
+        if rotation_anchors:
+            self.register_buffer("anchor_quat", torch.tensor([[1.0, 0.0, 0.0, 0.0]]).repeat(rotation_anchors, 1))
         if anchors:
             self.register_buffer("anchor_xyz", torch.zeros(anchors, 3))
         else:
@@ -48,7 +58,7 @@ class PoseHead(nn.Module):
         self.custom_init()
 
     def custom_init(self) -> None:
-        for fc in (self.fc1, self.fc_xyz, self.fc_quat, self.fc_anchor):
+        for fc in (self.fc1, self.fc_xyz, self.fc_quat, self.fc_anchor, self.fc_rotation_anchor):
             if fc is not None:
                 nn.init.normal_(fc.weight, std=0.01)
                 nn.init.zeros_(fc.bias)
@@ -63,7 +73,15 @@ class PoseHead(nn.Module):
         with torch.no_grad():
             self.anchor_xyz.copy_(xyz)
 
-    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    def set_rotation_anchors(self, quats: torch.Tensor) -> None:
+        """Set the anchor rotations: ``quats (R, 4)`` unit ``(w, x, y, z)``, world frame (``R`` as built)."""
+        if self.fc_rotation_anchor is None or tuple(quats.shape) != tuple(self.anchor_quat.shape):
+            have = 0 if self.fc_rotation_anchor is None else len(self.anchor_quat)
+            raise ValueError(f"this pose head has {have} rotation anchors, got anchors of shape {tuple(quats.shape)}")
+        with torch.no_grad():
+            self.anchor_quat.copy_(quats)
+
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
         if self.flatten_size is None:
             h = self.norm(x).mean(dim=(2, 3))
         elif tuple(x.shape[-2:]) != self.flatten_size:
@@ -73,13 +91,27 @@ class PoseHead(nn.Module):
         else:
             h = self.norm(x).flatten(1)
         h = self.dropout(F.elu(self.fc1(h)))
-        quat = quat_normalize(self.fc_quat(h))
+        quat, rotation_logits_br = self._rotation(h)
         if self.fc_anchor is None:
-            return self.xyz_offset + self.xyz_scale * self.fc_xyz(h), quat, None
+            return self.xyz_offset + self.xyz_scale * self.fc_xyz(h), quat, None, rotation_logits_br
         logits_bn = self.fc_anchor(h)
         offsets_bn3 = self.fc_xyz(h).unflatten(1, (-1, 3))
         xyz = torch.einsum("bn,bnc->bc", logits_bn.softmax(dim=1), self.anchor_xyz + offsets_bn3)
-        return xyz, quat, logits_bn
+        return xyz, quat, logits_bn, rotation_logits_br
+
+    def _rotation(self, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """fc1 features ``(B, F)`` -> unit quaternion ``(B, 4)`` and the rotation-anchor scores ``(B, R)`` or None."""
+        if self.fc_rotation_anchor is None:
+            return quat_normalize(self.fc_quat(h)), None
+        logits_br = self.fc_rotation_anchor(h)
+        identity = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=h.dtype, device=h.device)
+        residual_br4 = identity + self.fc_quat(h).unflatten(1, (-1, 4))
+        turned_br4 = quat_mul(self.anchor_quat.expand_as(residual_br4), residual_br4)
+        turned_br4 = turned_br4 / turned_br4.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        best_b14 = turned_br4.gather(1, logits_br.argmax(dim=1)[:, None, None].expand(-1, 1, 4))
+        sign_br1 = torch.where((turned_br4 * best_b14).sum(-1, keepdim=True) < 0, -1.0, 1.0).to(h.dtype)
+        quat = torch.einsum("br,brc->bc", logits_br.softmax(dim=1), sign_br1 * turned_br4)
+        return quat_normalize(quat), logits_br
 
 
 def bilinear_kernel(channels: int, kernel_size: int) -> torch.Tensor:

@@ -29,7 +29,7 @@ def model_info(config_name: str) -> dict[str, Any]:
                                      if _trains(stage, config.tasks)},
         "switches": {k: getattr(config, k) for k in ("semantic_stream", "temporal_fusion", "semantic_fusion", "warping")},
         "global_stream": {"downsample": config.global_downsample, "pooling": config.global_pose_pooling,
-                          "anchors": config.global_pose_anchors,
+                          "anchors": config.global_pose_anchors, "rotation_anchors": config.global_rotation_anchors,
                           "res5_size": list(config.global_res5_size)},
         "tasks": list(config.tasks),
         "num_classes": config.num_classes if config.semantic_stream else 0,
@@ -67,7 +67,9 @@ def _global_stream_line(g: dict[str, Any]) -> str:
     head = "averaged (the paper)" if g["pooling"] == "average" else "flattened (a departure from the paper)"
     xyz = ("fc2 regresses the position (the paper)" if not g["anchors"] else
            f"the position is {g['anchors']} scored anchors plus offsets (a departure from the paper)")
-    return f"global stream: reads the trunk's Res3 map {res3}; its {w}x{h} Res5c map is {head} into fc1; {xyz}"
+    quat = ("fc3 regresses the rotation (the paper)" if not g.get("rotation_anchors") else
+            f"the rotation is {g['rotation_anchors']} scored anchor rotations each turned by a residual (a departure from the paper)")
+    return f"global stream: reads the trunk's Res3 map {res3}; its {w}x{h} Res5c map is {head} into fc1; {xyz}; {quat}"
 
 
 def run(args: argparse.Namespace) -> int:

@@ -34,7 +34,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from vlocnetpp_core.geometry import pool_warp_grid, pose_to_matrix, warp_features, warp_grid
-from vlocnetpp_core.model.anchors import kmeans_anchors
+from vlocnetpp_core.model.anchors import kmeans_anchors, rotation_anchors
 from vlocnetpp_core.model.backbone import Stem, init_weights, make_stage
 from vlocnetpp_core.model.config import TASKS, ModelConfig
 from vlocnetpp_core.model.fusion import AdaptiveWeightedFusion
@@ -49,6 +49,8 @@ class StepOutput:
     ``T_wc``; ``rel_xyz``, ``rel_quat``: ``T_rel = T_{t-1}^{-1} T_t``; ``seg_logits (B, C, H, W)``;
     ``depth (B, 1, H, W)`` predicted metres; ``anchor_logits (B, N)``: the global pose head's scores
     of its position anchors ``anchor_xyz (N, 3)`` metres (config ``global_pose_anchors``; else None);
+    ``rotation_logits (B, R)``: its scores of its rotation anchors ``anchor_quat (R, 4)`` (config
+    ``global_rotation_anchors``; else None);
     ``taps``: named intermediate features.
     """
 
@@ -60,6 +62,8 @@ class StepOutput:
     depth: torch.Tensor | None = None
     anchor_logits: torch.Tensor | None = None
     anchor_xyz: torch.Tensor | None = None
+    rotation_logits: torch.Tensor | None = None
+    anchor_quat: torch.Tensor | None = None
     taps: dict[str, torch.Tensor] = field(default_factory=dict)
 
 
@@ -105,7 +109,7 @@ class GlobalPoseStream(nn.Module):
         self.res5 = make_stage(c[2], cfg.widths[3], c[3], cfg.depths[3], stride=2)
         self.temporal_fusion = AdaptiveWeightedFusion(c[3], c[3]) if cfg.temporal_fusion else None
         flatten = cfg.global_res5_size if cfg.global_pose_pooling == "flatten" else None
-        self.head = PoseHead(c[3], cfg.fc_width, cfg.dropout, flatten, cfg.global_pose_anchors)
+        self.head = PoseHead(c[3], cfg.fc_width, cfg.dropout, flatten, cfg.global_pose_anchors, cfg.global_rotation_anchors)
 
 
 class OdometryStream(nn.Module):
@@ -121,7 +125,7 @@ class OdometryStream(nn.Module):
     def forward(self, prev_res4: torch.Tensor, res4: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """``(B, C4, h, w)`` twice -> ``rel_xyz (B, 3)``, ``rel_quat (B, 4)``, Res5 output."""
         res5 = self.res5(torch.cat((prev_res4, res4), 1))
-        xyz, quat, _ = self.head(res5)
+        xyz, quat, _, _ = self.head(res5)
         return xyz, quat, res5
 
 
@@ -168,15 +172,22 @@ class VLocNetPP(nn.Module):
         self.register_buffer("std", torch.tensor(config.std).view(1, 3, 1, 1), persistent=False)
         init_weights(self)
 
-    def set_position_prior(self, positions: np.ndarray, seed: int = 0) -> None:
-        """Fit the global translation output to the training positions ``(M, 3)``, metres, world frame.
+    def set_pose_prior(self, positions: np.ndarray, quats: np.ndarray | None = None, seed: int = 0) -> None:
+        """Fit the global pose outputs to the training poses: positions ``(M, 3)`` metres and unit
+        quaternions ``(M, 4)`` ``(w, x, y, z)``, world frame.
 
         The paper's head (fc2 regressing the position) is centred on their mean with their spread (at
         least 1 m per axis) as its scale, so fc2 regresses numbers of order one instead of walking to
         the scene from the origin. A head with ``global_pose_anchors`` gets its anchors at their
-        k-means centres (``seed`` fixes them)."""
+        k-means centres, one with ``global_rotation_anchors`` its rotation anchors at the k-means
+        centres of the quaternions (``quats`` then required; ``seed`` fixes both)."""
         positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
         head = self.global_stream.head
+        if self.config.global_rotation_anchors:
+            if quats is None:
+                raise ValueError("a head with global_rotation_anchors needs the training quaternions")
+            anchors = rotation_anchors(np.asarray(quats, dtype=np.float64).reshape(-1, 4), self.config.global_rotation_anchors, seed)
+            head.set_rotation_anchors(torch.as_tensor(anchors, dtype=head.anchor_quat.dtype, device=head.anchor_quat.device))
         if self.config.global_pose_anchors:
             anchors = kmeans_anchors(positions, self.config.global_pose_anchors, seed)
             head.set_anchors(torch.as_tensor(anchors, dtype=head.anchor_xyz.dtype, device=head.anchor_xyz.device))
@@ -291,9 +302,11 @@ class VLocNetPP(nn.Module):
         for block in g.res5[1:]:
             h = block(h)
         taps["res5c"] = h
-        out.xyz, out.quat, out.anchor_logits = g.head(h)
+        out.xyz, out.quat, out.anchor_logits, out.rotation_logits = g.head(h)
         if out.anchor_logits is not None:
             out.anchor_xyz = g.head.anchor_xyz
+        if out.rotation_logits is not None:
+            out.anchor_quat = g.head.anchor_quat
 
     def global_pool(self, x: torch.Tensor) -> torch.Tensor:
         """``(B, C, h, w) -> (B, C, ceil(h/p), ceil(w/p))``: average pooling by ``config.global_downsample`` (``p``), for
