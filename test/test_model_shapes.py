@@ -112,20 +112,6 @@ def test_flatten_head_reads_where_things_are():
             head(torch.randn(1, cfg.stage_channels[3], h + 1, w))
 
 
-def test_flattened_odometry_head_reads_the_whole_res5_map():
-    """odometry_pose_pooling: flatten gives the odometry head's fc1 every cell of its Res5 map (stride 32)."""
-    torch.manual_seed(0)
-    cfg = lite(odometry_pose_pooling="flatten")
-    model = VLocNetPP(cfg).eval()
-    h, w = cfg.odometry_res5_size
-    assert (h, w) == (4, 7) and model.odometry.head.fc1.in_features == cfg.stage_channels[3] * h * w
-    K = intrinsics(1, 224, 128)
-    with torch.inference_mode():
-        _, state = model.step(torch.rand(1, 3, 128, 224), None, K)
-        out, _ = model.step(torch.rand(1, 3, 128, 224), state, K)
-    assert out.rel_xyz.shape == (1, 3) and out.rel_quat.shape == (1, 4)
-
-
 def test_anchor_head_mixes_anchors_plus_offsets():
     """With position anchors the position is the softmax-weighted sum of anchor + offset: a score that dominates
     puts the camera on its anchor plus that anchor's offset, equal scores average; fc2 of the paper is gone."""

@@ -41,15 +41,14 @@ class ModelConfig:
     are not silently switched off); the ``semantic_*``, ``num_classes`` and ``depth_*`` sizes are
     unused.
 
-    Five departures from the paper, all off by default (``lite`` uses them; ablation in
+    Four departures from the paper, all off by default (``lite`` uses them; ablation in
     docs/results.md): ``global_downsample`` average-pools the trunk's Res3 map by this factor before
     the global stream's Res4, so the global stream runs at a lower resolution than the trunk, the
     odometry stream and the semantic stream (whose Res5c map is pooled by the same factor for the
     Res4c fusion);
     ``global_pose_pooling: flatten`` feeds the whole Res5c map of the global stream into fc1
     instead of its global average (``average``, the paper's), which keeps where things are in
-    the image but fixes the input size to ``input_size`` (``odometry_pose_pooling``: the same for
-    the odometry stream's Res5 map);
+    the image but fixes the input size to ``input_size``;
     ``global_pose_anchors: N`` (0: the paper's fc2 regressing the position) makes the position
     head score ``N`` anchor positions (k-means of the training positions) and regress an offset
     from each: the position is the softmax-weighted sum of ``anchor + offset``;
@@ -79,7 +78,6 @@ class ModelConfig:
     semantic_stream: bool = True
     global_downsample: int = 1  # the global stream pools the trunk's Res3 map by this factor
     global_pose_pooling: str = "average"  # "average" (paper: global average pooling) or "flatten" (whole Res5c map into fc1)
-    odometry_pose_pooling: str = "average"  # the same choice for the odometry stream's head
     global_pose_anchors: int = 0  # position anchors of the global pose head (0: the paper's direct regression)
     global_rotation_anchors: int = 0  # rotation anchors of the global pose head (0: the paper's direct regression)
 
@@ -112,9 +110,8 @@ class ModelConfig:
         for key in ("global_pose_anchors", "global_rotation_anchors"):
             if getattr(self, key) < 0:
                 out.append(f"{key} must be >= 0 (0: the paper's direct regression), got {getattr(self, key)}")
-        for key in ("global_pose_pooling", "odometry_pose_pooling"):
-            if getattr(self, key) not in POSE_POOLINGS:
-                out.append(f"{key} must be one of {list(POSE_POOLINGS)}, got {getattr(self, key)!r}")
+        if self.global_pose_pooling not in POSE_POOLINGS:
+            out.append(f"global_pose_pooling must be one of {list(POSE_POOLINGS)}, got {self.global_pose_pooling!r}")
         needs_semantics = [k for k in ("warping", "semantic_fusion") if getattr(self, k)]
         if not self.semantic_stream and needs_semantics:
             out.append(f"semantic_stream is false (a pose-only network) but {' and '.join(needs_semantics)} "
@@ -139,12 +136,6 @@ class ModelConfig:
         w, h = self.input_size
         f = 32 * self.global_downsample
         return -(-h // f), -(-w // f)
-
-    @property
-    def odometry_res5_size(self) -> tuple[int, int]:
-        """``(h, w)`` of the odometry stream's Res5 map at ``input_size`` (stride 32, rounded up)."""
-        w, h = self.input_size
-        return -(-h // 32), -(-w // 32)
 
     def res5_dilations(self) -> tuple[int, ...]:
         """Dilation of the parallel branch of each semantic Res5 block (the list is repeated if short)."""
