@@ -60,6 +60,7 @@ def test_yaml_file_by_path_round_trips(tmp_path):
         ("global_pose_pooling: max\n", "global_pose_pooling must be one of"),
         ("global_downsample: 0\n", "global_downsample must be >= 1"),
         ("global_pose_anchors: -1\n", "global_pose_anchors must be >= 0"),
+        ("global_rotation_anchors: -2\n", "global_rotation_anchors must be >= 0"),
     ],
 )
 def test_bad_config_files_name_the_file(tmp_path, text, message):
