@@ -156,9 +156,9 @@ def test_optimiser_steps_drive_every_task_loss_down():
     batch = random_clip_batch(2, 2, W, H, seed=7)
     batch["labels"] = (torch.arange(W) * 4 // W).expand(2, 2, H, W).clone()  # four vertical bands: learnable
     batch["depth"] = torch.linspace(2.0, 20.0, H)[:, None].expand(2, 2, 1, H, W).clone()
-    model.set_pose_prior(batch["t"].flatten(0, 1).numpy())
+    model.set_pose_prior(batch["t"].flatten(0, 1).numpy(), batch["q"].flatten(0, 1).numpy())
     optimizer = torch.optim.Adam(list(trainable_parameters(model, "mtl")) + list(crit.parameters()), lr=2e-3)
-    keys = ("x", "q", "x_rel", "anchor", "x_vo", "q_vo", "seg", "depth")
+    keys = ("x", "q", "x_rel", "anchor", "anchor_q", "x_vo", "q_vo", "seg", "depth")
     history = []
     with single_thread():
         for _ in range(150):

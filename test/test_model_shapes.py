@@ -116,7 +116,7 @@ def test_anchor_head_mixes_anchors_plus_offsets():
     """With position anchors the position is the softmax-weighted sum of anchor + offset: a score that dominates
     puts the camera on its anchor plus that anchor's offset, equal scores average; fc2 of the paper is gone."""
     torch.manual_seed(0)
-    cfg = lite(global_pose_anchors=3)
+    cfg = lite(global_pose_anchors=3, global_rotation_anchors=0)
     model = VLocNetPP(cfg).eval()
     head = model.global_stream.head
     assert head.fc_anchor.out_features == 3 and head.fc_xyz.out_features == 9

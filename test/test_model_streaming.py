@@ -71,7 +71,7 @@ def test_state_carries_the_previous_frame(model):
 
 def test_position_prior_shifts_the_global_translation():
     """The paper's head is centred on the mean training position and scaled by the spread (at least 1 m)."""
-    model = VLocNetPP(lite(input_size=(W, H), global_pose_anchors=0)).eval()
+    model = VLocNetPP(lite(input_size=(W, H), global_pose_anchors=0, global_rotation_anchors=0)).eval()
     image = torch.rand(1, 3, H, W)
     positions = np.array([[100.0, -20.0, 3.5]]) + np.array([[-4.0, 0.0, 0.1], [4.0, 0.0, -0.1]])
     with torch.no_grad():

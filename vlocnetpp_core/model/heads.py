@@ -62,24 +62,25 @@ class PoseHead(nn.Module):
             if fc is not None:
                 nn.init.normal_(fc.weight, std=0.01)
                 nn.init.zeros_(fc.bias)
-        with torch.no_grad():
-            self.fc_quat.bias[0] = 1.0
+        if self.fc_rotation_anchor is None:  # with rotation anchors fc3 regresses departures from the identity
+            with torch.no_grad():
+                self.fc_quat.bias[0] = 1.0
 
     def set_anchors(self, xyz: torch.Tensor) -> None:
         """Set the anchor positions: ``xyz (N, 3)`` metres, world frame (``N`` as built)."""
-        if self.fc_anchor is None or tuple(xyz.shape) != tuple(self.anchor_xyz.shape):
-            have = 0 if self.fc_anchor is None else len(self.anchor_xyz)
-            raise ValueError(f"this pose head has {have} position anchors, got anchors of shape {tuple(xyz.shape)}")
-        with torch.no_grad():
-            self.anchor_xyz.copy_(xyz)
+        self._set_anchor_buffer("anchor_xyz", self.fc_anchor, xyz, "position")
 
     def set_rotation_anchors(self, quats: torch.Tensor) -> None:
         """Set the anchor rotations: ``quats (R, 4)`` unit ``(w, x, y, z)``, world frame (``R`` as built)."""
-        if self.fc_rotation_anchor is None or tuple(quats.shape) != tuple(self.anchor_quat.shape):
-            have = 0 if self.fc_rotation_anchor is None else len(self.anchor_quat)
-            raise ValueError(f"this pose head has {have} rotation anchors, got anchors of shape {tuple(quats.shape)}")
+        self._set_anchor_buffer("anchor_quat", self.fc_rotation_anchor, quats, "rotation")
+
+    def _set_anchor_buffer(self, name: str, scorer: nn.Linear | None, values: torch.Tensor, kind: str) -> None:
+        """Copy ``values`` into the anchor buffer ``name`` (scored by ``scorer``); ``ValueError`` naming the count built."""
+        if scorer is None or tuple(values.shape) != tuple(getattr(self, name).shape):
+            have = 0 if scorer is None else scorer.out_features
+            raise ValueError(f"this pose head has {have} {kind} anchors, got anchors of shape {tuple(values.shape)}")
         with torch.no_grad():
-            self.anchor_quat.copy_(quats)
+            getattr(self, name).copy_(values)
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
         if self.flatten_size is None:
