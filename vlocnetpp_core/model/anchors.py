@@ -6,6 +6,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.cluster.vq import kmeans2
 
+from vlocnetpp_core.geometry import quat_normalize
+
 
 def kmeans_anchors(positions: np.ndarray, count: int, seed: int = 0) -> np.ndarray:
     """``count`` anchor points ``(count, D)`` from training points ``(M, D)`` (positions: ``D = 3``, metres, world frame).
@@ -39,7 +41,4 @@ def rotation_anchors(quats: np.ndarray, count: int, seed: int = 0) -> np.ndarray
     quats = np.asarray(quats, dtype=np.float64)
     if quats.ndim != 2 or quats.shape[1] != 4:
         raise ValueError(f"quats must be an (M, 4) array, got shape {quats.shape}")
-    quats = quats / np.linalg.norm(quats, axis=1, keepdims=True) * np.where(quats[:, :1] < 0, -1.0, 1.0)
-    centres = kmeans_anchors(quats, count, seed)
-    centres = centres / np.maximum(np.linalg.norm(centres, axis=1, keepdims=True), 1e-12)
-    return centres * np.where(centres[:, :1] < 0, -1.0, 1.0)
+    return quat_normalize(kmeans_anchors(quat_normalize(quats), count, seed))

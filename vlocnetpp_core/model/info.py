@@ -67,7 +67,7 @@ def _global_stream_line(g: dict[str, Any]) -> str:
     head = "averaged (the paper)" if g["pooling"] == "average" else "flattened (a departure from the paper)"
     xyz = ("fc2 regresses the position (the paper)" if not g["anchors"] else
            f"the position is {g['anchors']} scored anchors plus offsets (a departure from the paper)")
-    quat = ("fc3 regresses the rotation (the paper)" if not g.get("rotation_anchors") else
+    quat = ("fc3 regresses the rotation (the paper)" if not g["rotation_anchors"] else
             f"the rotation is {g['rotation_anchors']} scored anchor rotations each turned by a residual (a departure from the paper)")
     return f"global stream: reads the trunk's Res3 map {res3}; its {w}x{h} Res5c map is {head} into fc1; {xyz}; {quat}"
 
