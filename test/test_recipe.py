@@ -9,6 +9,7 @@ import yaml
 
 from vlocnetpp_core.checkpoint import read_checkpoint_meta
 from vlocnetpp_core.cli import main as cli
+from vlocnetpp_core.data import open_dataset
 from vlocnetpp_core.model import load_model_config
 from vlocnetpp_core.recipe import load_recipe, stage_commands
 from vlocnetpp_core.retrieval import ReferenceSet
@@ -21,22 +22,28 @@ def _recipe(tmp_path, **changes) -> dict:
     (tmp_path / "tiny_direct.yaml").write_text(yaml.safe_dump(cfg | {"global_pose_anchors": 0}))
     recipe = {
         "config": str(tmp_path / "tiny.yaml"),
-        "datasets": {"campus": {"synth": {"seed": 0, "loops": 3, "test_loops": 1, "frames_per_loop": 8, "size": [64, 48]}}},
+        "datasets": {"campus": {"synth": {"seed": 0, "loops": 3, "test_loops": 1, "frames_per_loop": 8, "size": [64, 48]}},
+                     "wander": {"synth": {"seed": 0, "loops": 3, "test_loops": 0, "frames_per_loop": 8, "size": [64, 48], "lane_wander": 1.0}}},
         "defaults": {"data": "campus", "batch_size": 2, "clip_len": 2, "workers": 0, "val_every": 2},
         "stages": [
             {"name": "vo", "stage": "stl-vo", "schedule": [{"steps": 2, "lr": 1e-3}], "parallel": "a", "threads": 1,
              "config": "tiny_direct.yaml"},  # another model config (its global head without anchors), next to the recipe
             {"name": "seg", "stage": "stl-seg", "schedule": [{"steps": 2, "lr": 1e-3}], "parallel": "a", "threads": 1},
-            {"name": "loc", "stage": "stl-loc", "init": ["vo"], "s_q_init": 0,
+            {"name": "loc", "stage": "stl-loc", "init": ["vo"], "s_q_init": 0, "data": "wander",
              "schedule": [{"steps": 2, "lr": 1e-3}, {"steps": 4, "lr": 1e-4, "lr_end": 1e-6}]},
             {"name": "seg-more", "stage": "stl-seg", "continue": "seg", "schedule": [{"steps": 3, "lr": 1e-3}]},
         ],
-        "export": {"stage": "loc", "to": str(tmp_path / "models" / "tiny"), "dtype": "float16", "reference": "campus"},
+        "export": {"stage": "loc", "to": str(tmp_path / "models" / "tiny"), "dtype": "float16", "reference": ["campus", "wander"]},
     }
     recipe.update(changes)
     path = tmp_path / "recipe.yaml"
     path.write_text(yaml.safe_dump(recipe))
     return path
+
+
+def _train_positions(root) -> list:
+    index = open_dataset(root, "deeploc", "train")
+    return [index.load(i, depth=False, labels=False).t for i in range(len(index))]
 
 
 def test_recipe_runs_every_stage_exports_and_resumes(tmp_path, capsys):
@@ -57,7 +64,13 @@ def test_recipe_runs_every_stage_exports_and_resumes(tmp_path, capsys):
     assert meta["model_config"]["global_pose_anchors"] == 256  # the recipe's, on the trunk of a stage of another config
     assert meta["training"]["stage"] == "stl-loc" and meta["training"]["init"][0]["path"].endswith("vo/best.safetensors")
     reference = ReferenceSet.load(tmp_path / "models" / "tiny.reference.npz")
-    assert len(reference) == 24 and "dataset 'campus'" in reference.source  # the 3 training loops of 8 frames
+    # the training images of both datasets, 3 loops of 8 frames each
+    assert len(reference) == 48 and "dataset 'campus'" in reference.source and "dataset 'wander'" in reference.source
+    assert {tuple(t) for t in reference.t} == {
+        tuple(t) for name in ("campus", "wander") for t in _train_positions(out / "data" / name)}
+    visits = json.loads((out / "data" / "wander" / "scene.json").read_text())["visits"]
+    assert [v["pattern"]["lane_wander"] for v in visits] == [1.0] * 3  # the recipe's synth keys reach the renderer
+    assert meta["training"]["data"].endswith("wander")  # the stage's own data
 
     recipe = load_recipe(path)
     assert all(stage_commands(s, recipe, out) == [] for s in recipe.stages)  # finished: nothing left to run
@@ -85,6 +98,7 @@ def test_recipe_resumes_an_unfinished_schedule(tmp_path):
     ({"stages": [{"name": "vo", "stage": "stl-vo", "config": "nope.yaml", "schedule": [{"steps": 2, "lr": 1e-3}]}]},
      "config 'nope.yaml' is neither a built-in model config"),
     ({"export": {"stage": "mtl"}}, "export stage 'mtl'"),
+    ({"export": {"stage": "loc", "reference": ["campus", "nope"]}}, "export reference 'nope' is not one of the recipe's datasets"),
 ])
 def test_recipe_mistakes_are_one_line_naming_the_file(tmp_path, capsys, change, message):
     path = _recipe(tmp_path, **change)

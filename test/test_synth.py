@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from pathlib import Path
@@ -17,7 +18,8 @@ from vlocnetpp_core.classes import NUM_CLASSES, colorize
 from vlocnetpp_core.data.pfm import read_pfm
 from vlocnetpp_core.errors import UserError
 from vlocnetpp_core.synth import Campus, default_intrinsics, plan_visit, render_dataset, render_frame
-from vlocnetpp_core.synth.campus import BUILDING, GRASS, ROAD, SIDEWALK, SKY
+from vlocnetpp_core.synth.campus import BUILDING, GRASS, LANES, ROAD, SIDEWALK, SKY
+from vlocnetpp_core.synth.drive import MAX_LANE_OFFSET_M
 from vlocnetpp_core.synth.prims import BOX
 
 SMALL = dict(train_loops=2, test_loops=1, frames_per_loop=5, size=(96, 54), progress=False)
@@ -125,8 +127,27 @@ def test_test_lane_offset_moves_the_test_visits_only():
     assert np.all(np.abs(distance - 3.0) <= weave + 0.1), (distance.min(), distance.max(), weave)  # + the 0.1 m vertex spacing
 
 
+def test_lane_wander_drifts_across_the_road_and_changes_nothing_else():
+    """``lane_wander``: the visit drifts up to that far either side of its lane, within the sidewalks'
+    driving lines; its lighting, pattern and timing stay; 0 is the visit without it."""
+    campus = Campus("campus")
+    plain, wander = plan_visit(campus, 4, "train", 2, 250), plan_visit(campus, 4, "train", 2, 250, lane_wander=2.0)
+    np.testing.assert_array_equal(plan_visit(campus, 4, "train", 2, 250, lane_wander=0.0).t, plain.t)
+    assert wander.lighting == plain.lighting and wander.pattern.lane_wander == 2.0
+    assert dataclasses.replace(wander.pattern, lane_wander=0.0) == plain.pattern
+    np.testing.assert_array_equal(wander.times, plain.times)
+    centreline = campus.circuits[plain.pattern.circuit].points
+    plain_d, wander_d = (np.linalg.norm(v.t[:, None, :2] - centreline[None], axis=2).min(axis=1) for v in (plain, wander))
+    lane = abs(LANES[plain.pattern.lane])
+    assert np.all(np.abs(plain_d - lane) <= plain.pattern.weave_amplitude + 0.1)
+    drift = wander_d - lane
+    assert drift.max() - drift.min() > 1.0, (drift.min(), drift.max())  # it really crosses the road, not just weaves
+    assert np.all(wander_d <= MAX_LANE_OFFSET_M + 0.1) and np.all(np.abs(drift) <= 2.0 + plain.pattern.weave_amplitude + 0.1)
+
+
 @pytest.mark.parametrize("bad", [dict(size=(8, 8)), dict(frames_per_loop=0), dict(train_loops=0, test_loops=0), dict(seed=-1), dict(scene="two\nlines"),
-                                 dict(test_lane_offset=9.0), dict(test_lane_offset=float("nan"))])
+                                 dict(test_lane_offset=9.0), dict(test_lane_offset=float("nan")), dict(lane_wander=-1.0),
+                                 dict(lane_wander=float("inf"))])
 def test_bad_arguments_are_user_errors(tmp_path, bad):
     args = dict(SMALL, **bad)
     with pytest.raises(UserError):

@@ -33,7 +33,8 @@ stage is added to ``DIR/timings.json`` and printed.
 (``NAME``: ``NAME.safetensors`` + ``NAME.json``) in ``dtype``, with the covariance calibration
 of its validation (or, when it did not validate, of the stages named in ``calibration``:
 ``{pose: STAGE, odometry: STAGE}``), and the retrieval reference of the ``reference`` dataset's
-training images as ``NAME.reference.npz`` (the baseline ``evaluate`` and the demo compare with).
+training images as ``NAME.reference.npz`` (the baseline ``evaluate`` and the demo compare with;
+a list of datasets: all their training images, e.g. every image whose pose the network learnt).
 """
 
 from __future__ import annotations
@@ -118,6 +119,13 @@ def load_recipe(path: str | Path) -> Recipe:
     export = raw.get("export")
     if export is not None and export.get("stage") not in names:
         raise UserError(f"{path}: export stage '{export.get('stage')}' is not one of the stages")
+    if export is not None and export.get("reference"):
+        references = [export["reference"]] if isinstance(export["reference"], str) else list(export["reference"])
+        unknown = [name for name in references if name not in datasets]
+        if unknown:
+            raise UserError(f"{path}: export reference {', '.join(map(repr, unknown))} is not one of the recipe's datasets "
+                            f"({', '.join(datasets) or 'none'})")
+        export = {**export, "reference": references}
     return Recipe(path, str(raw["config"]), datasets, stages, export)
 
 
@@ -158,7 +166,7 @@ def prepare_datasets(recipe: Recipe, out: Path, log) -> None:
         s = spec["synth"]
         render_dataset(target, scene=s.get("scene", "campus"), seed=int(s.get("seed", 0)), train_loops=int(s.get("loops", 4)),
                        test_loops=int(s.get("test_loops", 2)), frames_per_loop=int(s.get("frames_per_loop", 175)),
-                       size=tuple(s.get("size", (320, 180))), progress=False)
+                       size=tuple(s.get("size", (320, 180))), lane_wander=float(s.get("lane_wander", 0.0)), progress=False)
         log(f"dataset {name}: rendered in {time.monotonic() - t0:.0f} s")
 
 

@@ -21,7 +21,7 @@ def export_weights(recipe, out: Path) -> Path:
     """
     from vlocnetpp_core.checkpoint import load_checkpoint, save_checkpoint
     from vlocnetpp_core.recipe import dataset_path
-    from vlocnetpp_core.retrieval import open_reference, reference_of
+    from vlocnetpp_core.retrieval import ReferenceSet, open_reference, reference_of
 
     spec = recipe.export
     weights = spec.get("weights", "best")
@@ -40,9 +40,9 @@ def export_weights(recipe, out: Path) -> Path:
     path = save_checkpoint(target, model, {"training": meta["training"], "calibration": calibration, "intrinsics": meta["intrinsics"]},
                            dtype=dtype)
     if spec.get("reference"):
-        name = spec["reference"]
-        reference = open_reference(dataset_path(recipe, name, out))
-        reference.source = f"recipe {recipe.path.name}, dataset '{name}' ({recipe.datasets[name]}), train split"
+        names = spec["reference"]  # a list of dataset names (load_recipe)
+        reference = ReferenceSet.concat([open_reference(dataset_path(recipe, name, out)) for name in names])
+        reference.source = f"recipe {recipe.path.name}, " + "; ".join(f"dataset '{n}' ({recipe.datasets[n]})" for n in names) + ", train split"
         reference.save(reference_of(path))
     return path
 

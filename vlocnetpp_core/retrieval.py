@@ -109,6 +109,14 @@ class ReferenceSet:
         return cls(np.stack(d), np.asarray(t, np.float64), np.asarray(q, np.float64), source)
 
     @classmethod
+    def concat(cls, sets: Sequence[ReferenceSet], source: str = "") -> ReferenceSet:
+        """One reference holding every image of ``sets`` (e.g. the training splits of several datasets)."""
+        if not sets:
+            raise ValueError(f"reference set {source!r} has no images")
+        return cls(np.concatenate([r.descriptors for r in sets]), np.concatenate([r.t for r in sets]),
+                   np.concatenate([r.q for r in sets]), source or "; ".join(r.source for r in sets))
+
+    @classmethod
     def from_dataset(cls, index, progress: bool = False) -> ReferenceSet:
         """Every frame of a ``DatasetIndex`` (e.g. the training split the network learned from)."""
         from tqdm import tqdm

@@ -30,6 +30,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--test-lane-offset", type=float, default=None, metavar="METRES",
                         help="drive the test loops this far right of the circuit centreline instead of in a lane (the lanes are at "
                              "+-1.5 m, the sidewalks at +-4.25 m), e.g. 3 or 0 for loops between the lanes training visits drove")
+    parser.add_argument("--lane-wander", type=float, default=0.0, metavar="METRES",
+                        help="let every train loop drift slowly up to this far either side of its lane (e.g. 1.5: the train "
+                             "loops then cover the road between the lanes; default: 0, keep to the lane)")
     parser.add_argument("--force", action="store_true", help="replace OUT if it exists")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
@@ -47,6 +50,7 @@ def run(args: argparse.Namespace) -> int:
             args.out, scene=args.scene, seed=args.seed, train_loops=args.loops, test_loops=args.test_loops,
             frames_per_loop=args.frames_per_loop, size=args.size, force=args.force, progress=not args.no_progress,
             frame_interval=args.frame_interval, test_lane_offset=args.test_lane_offset,
+            lane_wander=args.lane_wander,
         )
     finally:
         if previous is not None:

@@ -27,6 +27,8 @@ from vlocnetpp_core.synth.route import Route
 
 CAMERA_HEIGHT = 1.2
 MAX_SPACING_M = 1.5  # default frame spacing never exceeds this (the DeepLoc reader splits at 2 m)
+MAX_LANE_OFFSET_M = 4.5  # the outer edge of the sidewalks' driving line (metres either side of the centreline)
+WANDER_WAVELENGTHS_M = (70.0, 160.0)  # a wandering visit drifts across the road over tens of metres
 MIN_SPEED, MAX_SPEED = 1.0, 3.0
 LATERAL_ACCEL = 0.6  # m/s^2 in turns
 _DS = 0.05  # arc-length step of the dense trajectory
@@ -45,6 +47,7 @@ class DrivingPattern:
     weave_length: float  # m
     heading_bias_deg: float
     start_fraction: float  # where on the circuit the visit starts
+    lane_wander: float = 0.0  # m: slow drift either side of the lane (0: keeps to the lane)
 
 
 @dataclass
@@ -134,11 +137,14 @@ def choose_pattern(rng: np.random.Generator, split: str, loop: int, combo_offset
 
 
 def plan_visit(campus: Campus, seed: int, split: str, loop: int, frames: int, frame_interval: float | None = None,
-               lane_offset: float | None = None) -> Visit:
+               lane_offset: float | None = None, lane_wander: float = 0.0) -> Visit:
     """The ``loop``-th visit of ``split`` for ``seed``: ``frames`` camera poses plus lighting and movers.
 
     ``lane_offset`` (metres right of the circuit's centreline) replaces the lane the visit drew, e.g.
     to drive between the lanes that training visits use; everything else about the visit is unchanged.
+    ``lane_wander`` (metres) lets the visit drift slowly up to that far either side of its lane (over
+    :data:`WANDER_WAVELENGTHS_M`, never beyond :data:`MAX_LANE_OFFSET_M`), so that visits cover the
+    road between the lanes; 0 leaves the visit exactly as without it.
     """
     if split not in SPLIT_CODES:
         raise ValueError(f"split must be train or test, got {split!r}")
@@ -173,6 +179,10 @@ def plan_visit(campus: Campus, seed: int, split: str, loop: int, frames: int, fr
     s_f = np.interp(times, tcum, s)
     # lateral weave and heading of travel from the dense path
     weave = pattern.weave_amplitude * _smooth_noise_1d(rng, s, (pattern.weave_length, pattern.weave_length * 2.3))
+    if lane_wander > 0:  # its own random stream: the rest of the visit stays as without wander
+        pattern = replace(pattern, lane_wander=float(lane_wander))
+        drift = lane_wander * _smooth_noise_1d(np.random.default_rng([base_seed, SPLIT_CODES[split], int(loop), 1]), s, WANDER_WAVELENGTHS_M)
+        weave = np.clip(lateral + weave + drift, -MAX_LANE_OFFSET_M, MAX_LANE_OFFSET_M) - lateral
     p, tang = path.at(s_start + s)
     right = np.stack([tang[:, 1], -tang[:, 0]], 1)
     xy = p + weave[:, None] * right

@@ -33,12 +33,11 @@ from vlocnetpp_core.data.pfm import write_pfm
 from vlocnetpp_core.errors import UserError
 from vlocnetpp_core.intrinsics import Intrinsics
 from vlocnetpp_core.synth.campus import load_campus
-from vlocnetpp_core.synth.drive import plan_visit
+from vlocnetpp_core.synth.drive import MAX_LANE_OFFSET_M, plan_visit
 from vlocnetpp_core.synth.preview import mosaic, top_down_map
 from vlocnetpp_core.synth.render import render_frame
 
 GENERATOR_VERSION = 1
-MAX_LANE_OFFSET_M = 4.5  # the outer edge of the sidewalks' driving line
 DEFAULT_FRAMES_PER_LOOP = 175
 ID_STRIDE = 10000
 MOSAIC_ROWS_PER_SPLIT = 4
@@ -88,18 +87,22 @@ def render_dataset(
     progress: bool = True,
     frame_interval: float | None = None,
     test_lane_offset: float | None = None,
+    lane_wander: float = 0.0,
 ) -> dict:
     """Render ``train_loops`` + ``test_loops`` visits of campus ``scene`` into ``out``; returns a summary dict.
 
     ``frame_interval`` (seconds) fixes the time between frames (``0.05`` = 20 Hz video); by
     default each loop's frames are spread over one lap of its circuit. ``test_lane_offset``
     (metres right of the centreline, at most :data:`MAX_LANE_OFFSET_M` either way) drives the test
-    loops there instead of in one of the four lanes. Raises :class:`UserError` for bad arguments or
+    loops there instead of in one of the four lanes. ``lane_wander`` (metres) lets every train loop
+    drift slowly up to that far either side of its lane (``plan_visit``). Raises :class:`UserError` for bad arguments or
     an existing ``out`` without ``force``.
     """
     w, h = _check_args(scene, seed, train_loops, test_loops, frames_per_loop, size, frame_interval)
     if test_lane_offset is not None and not (math.isfinite(test_lane_offset) and abs(test_lane_offset) <= MAX_LANE_OFFSET_M):
         raise UserError(f"--test-lane-offset must be within +-{MAX_LANE_OFFSET_M:g} m of the centreline (the sidewalks), got {test_lane_offset}")
+    if not (math.isfinite(lane_wander) and 0 <= lane_wander <= MAX_LANE_OFFSET_M):
+        raise UserError(f"--lane-wander must be within 0 and {MAX_LANE_OFFSET_M:g} m, got {lane_wander}")
     out = Path(out)
     if out.exists() and not force:
         raise UserError(f"{out} already exists (use --force to replace it)")
@@ -109,7 +112,7 @@ def render_dataset(
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
     try:
         summary = _render_into(tmp, scene, int(seed), train_loops, test_loops, frames_per_loop, (w, h), progress, frame_interval,
-                               test_lane_offset)
+                               test_lane_offset, lane_wander)
         if out.exists():
             old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
             os.replace(out, old / "data")
@@ -130,7 +133,8 @@ def render_dataset(
 
 
 def _render_into(root: Path, scene: str, seed: int, train_loops: int, test_loops: int, frames: int, size: tuple[int, int],
-                 progress: bool, frame_interval: float | None, test_lane_offset: float | None = None) -> dict:
+                 progress: bool, frame_interval: float | None, test_lane_offset: float | None = None,
+                 lane_wander: float = 0.0) -> dict:
     from tqdm import tqdm
 
     t_start = time.perf_counter()
@@ -158,7 +162,8 @@ def _render_into(root: Path, scene: str, seed: int, train_loops: int, test_loops
             lines = [f"# synthetic campus {scene} seed {seed}", "ImageName x y z qw qx qy qz"]
             picks = set(np.linspace(0, n_loops * frames - 1, MOSAIC_ROWS_PER_SPLIT).round().astype(int).tolist())
             for loop in range(n_loops):
-                visit = plan_visit(campus, seed, split, loop, frames, frame_interval, test_lane_offset if split == "test" else None)
+                visit = (plan_visit(campus, seed, split, loop, frames, frame_interval, lane_wander=lane_wander) if split == "train"
+                         else plan_visit(campus, seed, split, loop, frames, frame_interval, test_lane_offset))
                 info = visit.info()
                 info["first_id"] = loop * ID_STRIDE + 1
                 loop_info.append(info)
