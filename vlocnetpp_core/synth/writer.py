@@ -162,8 +162,9 @@ def _render_into(root: Path, scene: str, seed: int, train_loops: int, test_loops
             lines = [f"# synthetic campus {scene} seed {seed}", "ImageName x y z qw qx qy qz"]
             picks = set(np.linspace(0, n_loops * frames - 1, MOSAIC_ROWS_PER_SPLIT).round().astype(int).tolist())
             for loop in range(n_loops):
-                visit = (plan_visit(campus, seed, split, loop, frames, frame_interval, lane_wander=lane_wander) if split == "train"
-                         else plan_visit(campus, seed, split, loop, frames, frame_interval, test_lane_offset))
+                train = split == "train"  # wander moves the train loops, the lane offset the test loops
+                visit = plan_visit(campus, seed, split, loop, frames, frame_interval, None if train else test_lane_offset,
+                                   lane_wander if train else 0.0)
                 info = visit.info()
                 info["first_id"] = loop * ID_STRIDE + 1
                 loop_info.append(info)
