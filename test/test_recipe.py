@@ -11,7 +11,7 @@ from vlocnetpp_core.checkpoint import read_checkpoint_meta
 from vlocnetpp_core.cli import main as cli
 from vlocnetpp_core.data import open_dataset
 from vlocnetpp_core.model import load_model_config
-from vlocnetpp_core.recipe import load_recipe, stage_commands
+from vlocnetpp_core.recipe import load_recipe, stage_commands, stage_weights
 from vlocnetpp_core.retrieval import ReferenceSet
 
 
@@ -91,12 +91,23 @@ def test_recipe_resumes_an_unfinished_schedule(tmp_path):
     assert command.count("--init") == 1 and command[command.index("--init") + 1] == str(out / "vo" / "best.safetensors")
 
 
+def test_a_stage_whose_weights_are_last_gives_its_last_checkpoint(tmp_path):
+    recipe = load_recipe(_recipe(tmp_path))
+    recipe.stages[0].weights = "last"  # vo: as `weights: last` in the file
+    (command, _) = stage_commands(recipe.stages[2], recipe, tmp_path / "run")
+    assert command[command.index("--init") + 1] == str(tmp_path / "run" / "vo" / "last.safetensors")
+    stages = [{**s, "weights": "last"} if s["name"] == "vo" else s for s in yaml.safe_load(_recipe(tmp_path).read_text())["stages"]]
+    assert load_recipe(_recipe(tmp_path, stages=stages)).stages[0].weights == "last"
+
+
 @pytest.mark.parametrize("change, message", [
     ({"stages": [{"name": "loc", "stage": "stl-loc", "init": ["vo"], "schedule": [{"steps": 2, "lr": 1e-3}]}]}, "'vo' (init or continue) is not an earlier stage"),
     ({"stages": [{"name": "vo", "stage": "stl-vo", "schedule": [{"steps": 2}]}]}, "'schedule' must be a list"),
     ({"stages": [{"name": "vo", "stage": "stl-vo", "data": "nope", "schedule": [{"steps": 2, "lr": 1e-3}]}]}, "data 'nope' is not one of"),
     ({"stages": [{"name": "vo", "stage": "stl-vo", "config": "nope.yaml", "schedule": [{"steps": 2, "lr": 1e-3}]}]},
      "config 'nope.yaml' is neither a built-in model config"),
+    ({"stages": [{"name": "vo", "stage": "stl-vo", "weights": "final", "schedule": [{"steps": 2, "lr": 1e-3}]}]},
+     "weights must be one of best, last"),
     ({"export": {"stage": "mtl"}}, "export stage 'mtl'"),
     ({"export": {"stage": "loc", "reference": ["campus", "nope"]}}, "export reference 'nope' is not one of the recipe's datasets"),
 ])
@@ -135,7 +146,7 @@ def test_the_shipped_recipes_give_valid_train_commands(name, tmp_path):
             args = parser.parse_args(command[command.index("train"):])
             assert args.stage == stage.stage and args.config == (stage.config or recipe.config)
             load_model_config(args.config)
-            assert [str(tmp_path / ref / "best.safetensors") for ref in stage.init] == (args.init or [])
+            assert [str(stage_weights(recipe, ref, tmp_path)) + ".safetensors" for ref in stage.init] == (args.init or [])
     assert recipe.export["stage"] == recipe.stages[-1].name
 
 

@@ -201,6 +201,38 @@ def test_mtl_semantic_fusion_starts_as_an_identity(tiny, stage_runs):
             torch.testing.assert_close(out.quat, ref.quat, rtol=0, atol=1e-5)
 
 
+def test_mtl_with_frozen_parts_trains_only_the_rest(tiny, stage_runs, tmp_path):
+    # the paper's multitask network (Res4c semantic fusion) with only the global stream and its fusion learning:
+    # the frozen parts keep their weights and BatchNorm statistics bit for bit, the sidecar records them
+    from vlocnetpp_core.checkpoint import read_checkpoint_tensors
+
+    data, config = tiny
+    inits = [a for stage in ("stl-loc", "stl-vo", "stl-seg") for a in ("--init", str(stage_runs[stage] / "last.safetensors"))]
+    train(data, config, tmp_path / "mtl", "mtl", 6, *inits, "--freeze", "trunk,odometry,semantic,depth_head")
+    after, meta = read_checkpoint_tensors(tmp_path / "mtl" / "last")
+    assert meta["training"]["frozen"] == ["depth_head", "odometry", "semantic", "trunk"]
+    sources = {stage: read_checkpoint_tensors(stage_runs[stage] / "last")[0] for stage in ("stl-loc", "stl-vo", "stl-seg")}
+    kept = {"trunk.": "stl-loc", "odometry.": "stl-vo", "semantic.": "stl-seg", "depth_head.": "stl-seg"}
+    for prefix, stage in kept.items():
+        names = [k for k in after if k.startswith(prefix)]
+        assert names and any(k.endswith("running_mean") for k in names)
+        changed = [k for k in names if not torch.equal(after[k], sources[stage][k])]
+        assert not changed, f"--freeze let mtl change {changed[:3]}"
+    assert any(not torch.equal(after[k], sources["stl-loc"][k]) for k in after if k.startswith("global_stream."))
+    assert any(k.startswith("semantic_fusion.") for k in after)
+
+
+def test_freeze_refuses_unknown_parts_and_freezing_everything(tiny, tmp_path, capsys):
+    data, config = tiny
+    base = ["train", "--config", str(config), "--data", str(data), "--out", str(tmp_path / "run"), "--steps", "2", "--workers", "0",
+            "--batch-size", "2", "--clip-len", "2", "--no-progress"]
+    with pytest.raises(SystemExit):
+        cli([*base, "--stage", "stl-loc", "--freeze", "trunk,backbone"])
+    assert "backbone" in capsys.readouterr().err
+    assert cli([*base, "--stage", "stl-vo", "--freeze", "odometry,trunk"]) != 0  # stl-vo trains both
+    assert "nothing of what stl-vo trains" in capsys.readouterr().err
+
+
 def test_mtl_assembled_without_steps_is_exactly_its_stages(tiny, stage_runs, tmp_path):
     # An untrained Res4c fusion (AWF ends in a ReLU) would clip the global stream's signed Res4c
     # features and change the pose stl-loc learned; a network assembled with no mtl steps leaves it

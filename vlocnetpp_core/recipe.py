@@ -17,7 +17,9 @@ weights. Example (``config/recipes/shipped.yaml`` is the shipped model's)::
 Stage keys: ``name`` (run folder), ``stage``, ``schedule`` (list of ``{steps, lr}``: train to
 ``steps`` in total at ``lr``, resuming from the previous entry; with ``lr_end: R`` the rate falls
 from ``lr`` to ``R`` along a half cosine over the entry, ``vlocnetpp train --lr-end``), ``init`` (stage names: their
-``best`` weights, in order), ``continue`` (a stage name: start as a copy of that stage's run
+weights, in order), ``weights`` (which of a stage's checkpoints later stages' ``init`` and the export
+calibration take: ``best``, default, the lowest validation error, or ``last``, e.g. for a schedule whose
+last entry restarts the rate, where validation errors of different phases trade position against rotation), ``continue`` (a stage name: start as a copy of that stage's run
 folder and resume it, e.g. to use a stage's early weights as another's init and train it on),
 ``data`` / ``val_data`` (dataset names), ``config`` (this stage's model config instead of the
 recipe's: a built-in name or a YAML file relative to the recipe; e.g. a stage that learns a
@@ -51,7 +53,8 @@ import yaml
 
 from vlocnetpp_core.errors import UserError
 
-STAGE_KEYS = {"name", "stage", "schedule", "init", "data", "val_data", "parallel", "continue", "config"}
+STAGE_KEYS = {"name", "stage", "schedule", "init", "data", "val_data", "parallel", "continue", "config", "weights"}
+WEIGHTS = ("best", "last")
 
 
 @dataclass
@@ -66,6 +69,7 @@ class Stage:
     parallel: str | None = None
     continues: str | None = None
     config: str | None = None  # model config of this stage (default: the recipe's)
+    weights: str = "best"  # the checkpoint later stages take from this one (best or last)
 
     @property
     def steps(self) -> int:
@@ -111,11 +115,14 @@ def load_recipe(path: str | Path) -> Recipe:
         for key in ("data", "val_data"):
             if key in entry and entry[key] not in datasets:
                 raise UserError(f"{where}: {key} '{entry[key]}' is not one of the recipe's datasets ({', '.join(datasets) or 'none'})")
+        weights = entry.get("weights", "best")
+        if weights not in WEIGHTS:
+            raise UserError(f"{where}: weights must be one of {', '.join(WEIGHTS)}, got {weights!r}")
         names.add(entry["name"])
         config = None if entry.get("config") is None else _stage_config(str(entry["config"]), path, where)
         flags = {key: v for key, v in entry.items() if key not in STAGE_KEYS - {"data", "val_data"}}
         stages.append(Stage(entry["name"], entry["stage"], schedule, list(entry.get("init") or []), flags, entry.get("parallel"),
-                            entry.get("continue"), config))
+                            entry.get("continue"), config, weights))
     export = raw.get("export")
     if export is not None and export.get("stage") not in names:
         raise UserError(f"{path}: export stage '{export.get('stage')}' is not one of the stages")
@@ -192,6 +199,14 @@ def stage_step(run_dir: Path) -> int:
     return int(json.loads(state.read_text())["step"]) if state.is_file() else -1
 
 
+def stage_weights(recipe: Recipe, name: str, out: Path) -> Path:
+    """``OUT/NAME/best`` or ``OUT/NAME/last`` (the stage's ``weights``): the checkpoint (without suffix) that later stages take."""
+    stage = next((s for s in recipe.stages if s.name == name), None)
+    if stage is None:
+        raise UserError(f"{recipe.path}: '{name}' is not one of the stages")
+    return out / name / stage.weights
+
+
 def stage_commands(stage: Stage, recipe: Recipe, out: Path, python: str = sys.executable) -> list[list[str]]:
     """The ``vlocnetpp train`` commands still to run for ``stage`` (one per unfinished schedule entry)."""
     run_dir = out / stage.name
@@ -199,7 +214,7 @@ def stage_commands(stage: Stage, recipe: Recipe, out: Path, python: str = sys.ex
     base = [python, "-m", "vlocnetpp_core.cli", "train", "--config", stage.config or recipe.config, "--stage", stage.stage, "--out", str(run_dir),
             "--no-progress", *_flag_args(stage.flags, recipe, out)]
     for ref in stage.init:
-        base += ["--init", str(out / ref / "best.safetensors")]
+        base += ["--init", str(stage_weights(recipe, ref, out).with_suffix(".safetensors"))]
     commands = []
     for steps, lr, lr_end in stage.schedule:
         if done >= steps:

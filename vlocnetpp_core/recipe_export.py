@@ -33,7 +33,7 @@ def export_weights(recipe, out: Path) -> Path:
     model, meta = load_checkpoint(source)
     calibration = meta.get("calibration") or {}
     if calibration.get("source", "default") == "default" and spec.get("calibration"):
-        calibration = _stage_calibration(out, spec["calibration"])
+        calibration = _stage_calibration(recipe, out, spec["calibration"])
     target = Path(spec["to"])
     if not target.is_absolute():
         target = Path.cwd() / target
@@ -47,11 +47,13 @@ def export_weights(recipe, out: Path) -> Path:
     return path
 
 
-def _stage_calibration(out: Path, stages: dict) -> dict:
-    """Pose variances from ``stages['pose']``'s best sidecar, odometry variances from ``stages['odometry']``'s."""
+def _stage_calibration(recipe, out: Path, stages: dict) -> dict:
+    """Pose variances from the sidecar of ``stages['pose']``'s weights (``best`` or ``last``), odometry variances from ``stages['odometry']``'s."""
+    from vlocnetpp_core.recipe import stage_weights
+
     parts = {}
     for kind, stage in stages.items():
-        sidecar = out / stage / "best.json"
+        sidecar = stage_weights(recipe, stage, out).with_suffix(".json")
         if not sidecar.is_file():
             raise UserError(f"calibration: {sidecar} not found")
         parts[kind] = json.loads(sidecar.read_text())["calibration"]

@@ -36,7 +36,7 @@ import torch
 
 from vlocnetpp_core.errors import UserError
 from vlocnetpp_core.losses import S_Q_INIT
-from vlocnetpp_core.model.stages import STAGES
+from vlocnetpp_core.model.stages import PARTS, STAGES
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -54,6 +54,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="initialise from a checkpoint (a later one wins where they overlap); for mtl give each single-task checkpoint (each stream comes from its stage); "
                         "for stl-loc an stl-seg checkpoint gives its encoder as the pre-trained backbone, an stl-vo checkpoint its trunk, kept frozen")
     p.add_argument("--init-backbone", metavar="FILE", help="standard ResNet-50 state dict (torchvision key names) for every backbone")
+    p.add_argument("--freeze", type=_parts, default=(), metavar="PART[,PART...]",
+                   help=f"keep these parts of the network as they are, weights and BatchNorm statistics ({', '.join(PARTS)}); "
+                        "e.g. mtl that trains only the global stream with its Res4c semantic fusion: "
+                        "--freeze trunk,odometry,semantic,depth_head (default: none; a pose stage on the other's trunk freezes the trunk)")
     p.add_argument("--resume", action="store_true", help="continue the run in --out exactly where it stopped")
     p.add_argument("--batch-size", type=int, default=32, help="clips per optimiser step, over all ranks (paper: 32)")
     p.add_argument("--clip-len", type=int, default=3, help="frames per training clip, unrolled through the network (default 3)")
@@ -95,6 +99,13 @@ def _strides(text: str) -> tuple[int, ...]:
         raise argparse.ArgumentTypeError(f"expected frame strides >= 1 separated by commas (e.g. 1,2), got {text!r}")
     return strides
 
+
+def _parts(text: str) -> tuple[str, ...]:
+    parts = tuple(sorted({s.strip() for s in text.split(",") if s.strip()}))
+    unknown = [p for p in parts if p not in PARTS]
+    if not parts or unknown:
+        raise argparse.ArgumentTypeError(f"expected parts of the network separated by commas ({', '.join(PARTS)}), got {text!r}")
+    return parts
 
 
 def run(args: argparse.Namespace) -> int:

@@ -81,7 +81,8 @@ class SeededClips(torch.utils.data.Dataset):
 
     def __getitem__(self, item):
         i, seed = item
-        torch.manual_seed(seed)
+        # the CPU generator, which the augmentation draws from: torch.manual_seed would also reseed every CUDA generator
+        torch.random.default_generator.manual_seed(seed)
         return self.clips[i]
 
 

@@ -112,7 +112,8 @@ class Trainer:
     def _setup_model(self) -> None:
         """The network (position prior, inits, backbone), the loss with its learned weights, the optimiser."""
         from vlocnetpp_core.losses import VLocNetLoss
-        from vlocnetpp_core.model import VLocNetPP, trainable_parameters
+        from vlocnetpp_core.model import VLocNetPP, is_trained_in
+        from vlocnetpp_core.model.stages import part_of
 
         args = self.args
         self.model = model = VLocNetPP(self.config)
@@ -125,13 +126,10 @@ class Trainer:
             from vlocnetpp_core.model import load_backbone_weights
 
             self.log(f"init-backbone: {load_backbone_weights(model, args.init_backbone)}")
-        params = list(trainable_parameters(model, args.stage))
-        self.frozen_trunk = frozen_trunk(args.stage, [src["stage"] for src in self.sources])
-        if self.frozen_trunk:
-            # One pose stream on top of the other's trunk: keep the shared trunk as the first stage learned it
-            # (weights and BatchNorm statistics), so that mtl can combine the two streams consistently.
-            trunk = {id(p) for n, p in model.named_parameters() if n.startswith("trunk.")}
-            params = [p for p in params if id(p) not in trunk]
+        self.frozen = self._frozen_parts()
+        params = [p for n, p in model.named_parameters() if is_trained_in(n, args.stage) and part_of(n) not in self.frozen]
+        if not params:
+            raise UserError(f"--freeze {','.join(self.frozen)}: nothing of what {args.stage} trains is left to train")
         params += list(self.criterion.parameters())
         for p in model.parameters():
             p.requires_grad_(False)
@@ -139,6 +137,17 @@ class Trainer:
             p.requires_grad_(True)
         self.lr = args.lr if args.lr is not None else DEFAULT_LR[args.stage]
         self.optimizer = torch.optim.Adam(params, lr=self.lr, betas=(0.9, 0.999), eps=1e-10)
+
+    def _frozen_parts(self) -> tuple[str, ...]:
+        """``--freeze``, plus the trunk of one pose stream trained on top of the other's: kept as the first stage learned it
+        (weights and BatchNorm statistics), so that mtl can combine the two streams consistently."""
+        frozen = set(self.args.freeze)
+        if frozen_trunk(self.args.stage, [src["stage"] for src in self.sources]):
+            frozen.add("trunk")
+        missing = [part for part in frozen if getattr(self.model, part) is None]
+        if missing:
+            raise UserError(f"--freeze {','.join(missing)}: this network (--config {self.args.config}) has no such part")
+        return tuple(sorted(frozen))
 
     def _resume(self) -> None:
         """Weights, optimiser, loss weights, RNG, step and best score of the run in ``--out``; ``--lr`` steps the rate."""
@@ -205,8 +214,8 @@ class Trainer:
         """One optimiser step on a batch of clips; returns the log record (every loss term, the rate, clips/s)."""
         t0 = time.perf_counter()
         self.net.train()
-        if self.frozen_trunk:
-            self.model.trunk.eval()
+        for part in self.frozen:
+            getattr(self.model, part).eval()
         batch = {k: v.to(self.device, non_blocking=True) for k, v in batch.items()}
         loss, parts = self.criterion(forward_stage(self.net, batch, self.args.stage), batch)
         self.optimizer.zero_grad(set_to_none=True)
@@ -263,7 +272,7 @@ class Trainer:
             "train_clips": len(self.train_clips), "frame_strides": list(args.frame_strides),
             "val_frames": len(self.val_index) if self.val_index is not None else 0, "clip_len": args.clip_len,
             "batch_size": args.batch_size, "lr": self.lr, "lr_end": args.lr_end, "s_q_init": args.s_q_init, "crop_scale": self.crop_scale, "world_size": self.world,
-            "init": self.sources, "seed": args.seed,
+            "init": self.sources, "frozen": list(self.frozen), "seed": args.seed,
         }
 
 

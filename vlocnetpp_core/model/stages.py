@@ -42,12 +42,20 @@ _STAGE_STREAMS = {
 }
 
 
+PARTS = tuple(_PREFIX_STREAM)  # the network's top-level modules, which ``vlocnetpp train --freeze`` names
+
+
+def part_of(name: str) -> str:
+    """Top-level module (one of :data:`PARTS`) of a parameter or buffer name (``"trunk.res3.0.conv1.weight"`` -> ``"trunk"``)."""
+    part = name.removeprefix("module.").split(".", 1)[0]
+    if part not in _PREFIX_STREAM:
+        raise KeyError(f"{name!r} is not a VLocNetPP parameter name")
+    return part
+
+
 def stream_of(name: str) -> str:
     """Stream of a parameter or buffer name of :class:`VLocNetPP` (``"trunk.res3.0.conv1.weight"`` -> ``"global"``)."""
-    prefix = name.removeprefix("module.").split(".", 1)[0]
-    if prefix not in _PREFIX_STREAM:
-        raise KeyError(f"{name!r} is not a VLocNetPP parameter name")
-    return _PREFIX_STREAM[prefix]
+    return _PREFIX_STREAM[part_of(name)]
 
 
 def _check_stage(stage: str) -> None:
