@@ -112,8 +112,7 @@ class Trainer:
     def _setup_model(self) -> None:
         """The network (position prior, inits, backbone), the loss with its learned weights, the optimiser."""
         from vlocnetpp_core.losses import VLocNetLoss
-        from vlocnetpp_core.model import VLocNetPP, is_trained_in
-        from vlocnetpp_core.model.stages import part_of
+        from vlocnetpp_core.model import VLocNetPP, trainable_parameters
 
         args = self.args
         self.model = model = VLocNetPP(self.config)
@@ -127,7 +126,7 @@ class Trainer:
 
             self.log(f"init-backbone: {load_backbone_weights(model, args.init_backbone)}")
         self.frozen = self._frozen_parts()
-        params = [p for n, p in model.named_parameters() if is_trained_in(n, args.stage) and part_of(n) not in self.frozen]
+        params = list(trainable_parameters(model, args.stage, self.frozen))
         if not params:
             raise UserError(f"--freeze {','.join(self.frozen)}: nothing of what {args.stage} trains is left to train")
         params += list(self.criterion.parameters())

@@ -85,10 +85,11 @@ def is_trained_in(name: str, stage: str) -> bool:
     return stream_of(name) in _STAGE_STREAMS[stage]
 
 
-def trainable_parameters(model: nn.Module, stage: str) -> Iterator[nn.Parameter]:
-    """The parameters of ``model`` that ``stage`` trains (see the module docstring)."""
+def trainable_parameters(model: nn.Module, stage: str, frozen: Iterable[str] = ()) -> Iterator[nn.Parameter]:
+    """The parameters of ``model`` that ``stage`` trains (see the module docstring), less those of the ``frozen`` parts (:data:`PARTS`)."""
     _check_stage(stage)
-    return (p for name, p in model.named_parameters() if is_trained_in(name, stage))
+    frozen = set(frozen)
+    return (p for name, p in model.named_parameters() if is_trained_in(name, stage) and part_of(name) not in frozen)
 
 
 def params_per_stream(model: nn.Module) -> dict[str, int]:
