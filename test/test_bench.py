@@ -26,7 +26,7 @@ from vlocnetpp_core.cli import main
 from vlocnetpp_core.model import VLocNetPP, load_model_config
 
 FIGURES = ("cached_vs_recompute_speedup", "mtl_step_over_resnet50", "node_latency_over_step", "lite_hz",
-           "converter_speed_over_png_decode", "synth_fps", "peak_rss_mb")
+           "converter_speed_over_png_decode", "synth_fps", "train_nchw_over_nhwc", "peak_rss_mb")
 
 
 @pytest.fixture(scope="module")
@@ -86,6 +86,7 @@ def test_ratios_are_the_quotients_of_the_reported_times(report):
     assert report["lite_hz"] == max(report["lite_hz_torch"], report["lite_hz_onnx"])
     assert report["converter_speed_over_png_decode"] == pytest.approx(t["png_decode_frame"] / t["converter_frame"], rel=1e-3)
     assert report["synth_fps"] == pytest.approx(1000.0 / t["synth_frame"], rel=1e-3)
+    assert report["train_nchw_over_nhwc"] == pytest.approx(t["train_step_nchw"] / t["train_step_nhwc"], rel=1e-3)
 
 
 def test_quick_run_says_what_it_measured(report):

@@ -152,7 +152,8 @@ def test_missing_corrupt_and_mismatched_files_raise_one_clear_error(lite_checkpo
 def test_non_finite_weights_are_refused(lite_checkpoint: Path, tmp_path: Path):
     model, _ = load_checkpoint(lite_checkpoint)
     with torch.no_grad():
-        next(model.parameters()).view(-1)[0] = float("nan")
+        first = next(model.parameters())
+        first[(0,) * first.dim()] = float("nan")
     save_checkpoint(tmp_path / "nan", model, {})
     with pytest.raises(DataError, match="NaN or infinite"):
         load_checkpoint(tmp_path / "nan")

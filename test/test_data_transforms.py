@@ -15,6 +15,7 @@ from vlocnetpp_core.data.transforms import (
     RandomCrop,
     Resize,
     flip_frame,
+    jitter_image,
     make_transform,
     resize_frame,
 )
@@ -101,6 +102,23 @@ def test_training_without_geometric_augmentation_sees_the_test_geometry():
         np.testing.assert_array_equal(f.depth, reference.depth)
         images.append(f.image)
     assert any(not np.array_equal(im, reference.image) for im in images)  # the jitter still changes the colours
+
+
+def test_jitter_scales_brightness_contrast_and_saturation():
+    """Each factor alone does what its name says (to within one level of uint8): brightness scales, contrast 0 leaves
+    the mean grey everywhere, saturation 0 the grey of each pixel; factors of 1 change nothing."""
+    image = np.random.default_rng(0).integers(0, 256, size=(40, 60, 3), dtype=np.uint8)
+    pixels = image.astype(np.float64)
+    grey = pixels @ np.array([0.299, 0.587, 0.114])
+    np.testing.assert_array_equal(jitter_image(image, 1.0, 1.0, 1.0), image)
+    cases = [((0.8, 1.0, 1.0), 0.8 * pixels),
+             ((1.2, 1.0, 1.0), np.minimum(1.2 * pixels, 255)),
+             ((1.0, 0.0, 1.0), np.full_like(pixels, grey.mean())),
+             ((1.0, 1.0, 0.0), np.repeat(grey[..., None], 3, axis=-1))]
+    for (b, c, s), want in cases:
+        got = jitter_image(image, b, c, s)
+        assert got.dtype == np.uint8 and got.shape == image.shape
+        assert np.abs(got - want).max() <= 1.0, (b, c, s)  # rounding to uint8 in float32 arithmetic
 
 
 def test_depth_and_labels_resize_never_blend():

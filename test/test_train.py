@@ -373,8 +373,9 @@ def test_pose_only_trains_without_labels_or_depth(unlabelled, tmp_path, capsys):
     assert not index.has_labels and not index.has_depth
     one = ("--threads", "1")  # tiny tensors: a second thread only slows them down on a busy machine
     loc = steps_of(train(data, config, tmp_path / "stl-loc", "stl-loc", 60, *one))
-    # 60 tiny steps: the heading leads, the position only starts to fall (loss about 0.8 of its start with the rotation anchors)
-    for key, factor in (("loss", 0.9), ("q", 0.9)):
+    # 60 tiny steps: the heading leads, the position only starts to fall (over --seed 0-3 the loss fell to 0.70-0.94
+    # of its start, the heading term to 0.59-0.82: batches of 2 make the path of the loss depend on rounding)
+    for key, factor in (("loss", 0.95), ("q", 0.9)):
         early, late = early_late(loc, key, 10)
         assert late < factor * early, f"stl-loc: {key} went {early:.3f} -> {late:.3f}"
     train(data, config, tmp_path / "stl-vo", "stl-vo", 6, *one, "--init", str(tmp_path / "stl-loc" / "last.safetensors"))

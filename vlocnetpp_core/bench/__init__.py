@@ -105,6 +105,7 @@ TARGETS: dict[str, tuple[str, float | None, str]] = {
     "lite_hz": (">=", 15.0, "lite Localizer.step per second (faster backend)"),
     "converter_speed_over_png_decode": (">=", 0.8, "convert frames/s / PNG decode frames/s"),
     "synth_fps": (">=", 30.0, "synthetic campus frames/s at 320x180"),
+    "train_nchw_over_nhwc": (">=", 1.0, "lite stl-loc training step: NCHW network / channels-last network (as built)"),
     "peak_rss_mb": ("", None, "node peak resident memory while streaming (MiB)"),
     "paper_step_ms": ("<=", None, "paper multitask step with cached state (ms, fastest backend); 5 ms goal on CUDA"),
 }
@@ -160,6 +161,8 @@ def run_bench(settings: BenchSettings, device: str = "cpu", quick: bool = False,
             report["notes"].append(f"onnx backend not measured: {lite.pop('onnx_error')}")
         report["lite_input_size"], report["camera_size"] = lite.pop("input_size"), lite.pop("camera_size")
         times.update(lite)
+        say("lite config: stl-loc training step, channels-last vs NCHW")
+        times.update(figures.train_step(settings.lite_config, device, settings.repetitions, settings.warmup))
         if settings.node:
             say("node: latency over DDS vs bare Localizer.step")
             try:
@@ -196,6 +199,7 @@ def _add_figures(report: dict, times: dict, device: str) -> None:
         "lite_hz": 1.0 / lite_steps[best],
         "converter_speed_over_png_decode": times["png_decode_frame"] / times["converter_frame"] if converter else None,
         "synth_fps": 1.0 / times["synth_frame"],
+        "train_nchw_over_nhwc": times["train_step_nchw"] / times["train_step_nhwc"],
         "peak_rss_mb": times.get("node_peak_rss_mb"),
         "paper_step_ms": 1000.0 * paper_steps[paper_best],
     }
@@ -270,6 +274,7 @@ def format_table(report: dict) -> str:
                                             f"-> {report['converter_speed_over_png_decode_idle_estimate']:.2f} on an idle 2-core machine")
                                            if "converter_frame" in t else "not measured",
         "synth_fps": f"{t['synth_frame']:.1f} ms per frame",
+        "train_nchw_over_nhwc": f"NCHW {t['train_step_nchw']:.0f} ms / channels-last {t['train_step_nhwc']:.0f} ms per step",
         "peak_rss_mb": f"now {report['node_rss_mb']:.0f} MiB" if "node_rss_mb" in report else "not measured",
         "paper_step_ms": f"{report['machine']['device']}",
     }

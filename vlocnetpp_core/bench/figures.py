@@ -210,6 +210,39 @@ def lite_step(checkpoint: Path, frames: list[np.ndarray], device: str, threads: 
     return result
 
 
+def train_step(config: str, device: str, repetitions: int, warmup: int, batch: int = 16, clip_len: int = 2) -> dict:
+    """One ``stl-loc`` training step of ``config`` (the recipe's longest stage: trunk frozen, ``batch`` clips of
+    ``clip_len`` random frames at the input size, forward, loss and backward) with the network channels-last,
+    as built, and the same network in NCHW, interleaved: ``train_step_nhwc`` / ``train_step_nchw``."""
+    from vlocnetpp_core.losses import VLocNetLoss
+    from vlocnetpp_core.model import VLocNetPP, load_model_config, trainable_parameters
+    from vlocnetpp_core.model.stages import stage_tasks
+    from vlocnetpp_core.trainer import forward_stage
+
+    cfg = load_model_config(config)
+    (w, h), gen = cfg.input_size, torch.Generator().manual_seed(0)
+    quats = torch.nn.functional.normalize(torch.randn(batch, clip_len, 4, generator=gen), dim=-1)
+    clips = {"image": torch.rand(batch, clip_len, 3, h, w, generator=gen), "t": torch.randn(batch, clip_len, 3, generator=gen),
+             "q": quats, "rel_t": torch.randn(batch, clip_len, 3, generator=gen), "rel_q": quats,
+             "K": torch.tensor([[w / 2, 0.0, w / 2], [0.0, w / 2, h / 2], [0.0, 0.0, 1.0]]).expand(batch, clip_len, 3, 3)}
+    clips = {k: v.to(device) for k, v in clips.items()}
+    criterion = VLocNetLoss(stage_tasks("stl-loc", cfg.tasks), depth=cfg.warping).to(device)
+    cases = {}
+    for name, layout in (("nhwc", torch.channels_last), ("nchw", torch.contiguous_format)):
+        model = VLocNetPP(cfg).to(device, memory_format=layout).train()
+        model.requires_grad_(False)
+        for p in trainable_parameters(model, "stl-loc", frozen=("trunk",)):
+            p.requires_grad_(True)
+        model.trunk.eval()
+
+        def step(model=model) -> None:
+            loss, _ = criterion(forward_stage(model, clips, "stl-loc"), clips)
+            loss.backward()
+        cases[name] = step
+    times = interleaved(cases, repetitions, warmup, synchronizer(device))
+    return {f"train_step_{name}": median(values) for name, values in times.items()}
+
+
 def node_latency(checkpoint: Path, frames: list[np.ndarray], workdir: Path, device: str, threads: int, backend: str, transport: str,
                  repetitions: int, warmup: int, timeout_s: float = 300.0) -> dict:
     """Run the ``latency-bench`` ROS program (the real node over DDS vs the bare Localizer,

@@ -119,9 +119,9 @@ def clip_to_tensors(frames: list[Frame], indices: list[int]) -> dict[str, torch.
             raise ValueError(f"frames of a clip differ in size ({f.frame_id}: {f.image.shape[:2]} vs {(h, w)}); use a transform with a fixed size")
     depth = np.stack([f.depth if f.depth is not None else np.zeros((h, w), np.float32) for f in frames])
     labels = np.stack([f.labels if f.labels is not None else np.full((h, w), IGNORE_INDEX, np.uint8) for f in frames])
-    image = torch.from_numpy(np.stack([f.image for f in frames])).permute(0, 3, 1, 2).float().div_(255.0)
+    image = torch.from_numpy(np.ascontiguousarray(np.stack([f.image for f in frames]).transpose(0, 3, 1, 2))).float().div_(255.0)
     return {
-        "image": image.contiguous(),
+        "image": image,
         "t": torch.from_numpy(t).float(),
         "q": torch.from_numpy(q).float(),
         "rel_t": torch.from_numpy(rel_t).float(),

@@ -21,12 +21,15 @@ import dataclasses
 import math
 from collections.abc import Sequence
 
+import cv2
 import numpy as np
 
 from vlocnetpp_core.data.sample import Frame
 from vlocnetpp_core.preprocess import resize_image, resize_nearest
 
 Clip = list[Frame]
+
+GREY_WEIGHTS = np.array([0.299, 0.587, 0.114])  # RGB -> grey (ITU-R BT.601 luma)
 
 
 def resize_frame(frame: Frame, width: int, height: int) -> Frame:
@@ -136,13 +139,16 @@ class ColorJitter:
 
 
 def jitter_image(image: np.ndarray, brightness: float, contrast: float, saturation: float) -> np.ndarray:
-    """``(H, W, 3) uint8`` RGB scaled in brightness, then contrast about the mean grey, then saturation."""
-    img = image.astype(np.float32) * brightness
-    grey = img @ np.array([0.299, 0.587, 0.114], dtype=np.float32)
-    img = (img - grey.mean()) * contrast + grey.mean()
-    grey = img @ np.array([0.299, 0.587, 0.114], dtype=np.float32)
-    img = grey[..., None] + (img - grey[..., None]) * saturation
-    return np.clip(img + 0.5, 0, 255).astype(np.uint8)
+    """``(H, W, 3) uint8`` RGB scaled in brightness, then contrast about the mean grey, then saturation
+    about each pixel's grey (rounded, saturated to 0..255).
+
+    The three steps compose to one affine colour map (the grey weights sum to 1), applied in one pass:
+    ``out = c b S img + (1 - c) b mean_grey``, with ``S = s I + (1 - s) 1 w^T`` and ``w`` the grey weights.
+    """
+    mean_grey = brightness * float(GREY_WEIGHTS @ np.asarray(cv2.mean(image)[:3]))
+    colour = saturation * np.eye(3) + (1.0 - saturation) * np.outer(np.ones(3), GREY_WEIGHTS)
+    affine = np.hstack([contrast * brightness * colour, np.full((3, 1), (1.0 - contrast) * mean_grey)])
+    return cv2.transform(image, affine)
 
 
 @dataclasses.dataclass
