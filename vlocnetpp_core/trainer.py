@@ -112,7 +112,7 @@ class Trainer:
     def _setup_model(self) -> None:
         """The network (position prior, inits, backbone), the loss with its learned weights, the optimiser."""
         from vlocnetpp_core.losses import VLocNetLoss
-        from vlocnetpp_core.model import VLocNetPP, trainable_parameters
+        from vlocnetpp_core.model import VLocNetPP, train_only
 
         args = self.args
         self.model = model = VLocNetPP(self.config)
@@ -126,14 +126,10 @@ class Trainer:
 
             self.log(f"init-backbone: {load_backbone_weights(model, args.init_backbone)}")
         self.frozen = self._frozen_parts()
-        params = list(trainable_parameters(model, args.stage, self.frozen))
+        params = train_only(model, args.stage, self.frozen)
         if not params:
             raise UserError(f"--freeze {','.join(self.frozen)}: nothing of what {args.stage} trains is left to train")
         params += list(self.criterion.parameters())
-        for p in model.parameters():
-            p.requires_grad_(False)
-        for p in params:
-            p.requires_grad_(True)
         self.lr = args.lr if args.lr is not None else DEFAULT_LR[args.stage]
         self.optimizer = torch.optim.Adam(params, lr=self.lr, betas=(0.9, 0.999), eps=1e-10)
 

@@ -215,7 +215,7 @@ def train_step(config: str, device: str, repetitions: int, warmup: int, batch: i
     ``clip_len`` random frames at the input size, forward, loss and backward) with the network channels-last,
     as built, and the same network in NCHW, interleaved: ``train_step_nhwc`` / ``train_step_nchw``."""
     from vlocnetpp_core.losses import VLocNetLoss
-    from vlocnetpp_core.model import VLocNetPP, load_model_config, trainable_parameters
+    from vlocnetpp_core.model import VLocNetPP, load_model_config, train_only
     from vlocnetpp_core.model.stages import stage_tasks
     from vlocnetpp_core.trainer import forward_stage
 
@@ -230,9 +230,7 @@ def train_step(config: str, device: str, repetitions: int, warmup: int, batch: i
     cases = {}
     for name, layout in (("nhwc", torch.channels_last), ("nchw", torch.contiguous_format)):
         model = VLocNetPP(cfg).to(device, memory_format=layout).train()
-        model.requires_grad_(False)
-        for p in trainable_parameters(model, "stl-loc", frozen=("trunk",)):
-            p.requires_grad_(True)
+        train_only(model, "stl-loc", frozen=("trunk",))
         model.trunk.eval()
 
         def step(model=model) -> None:

@@ -14,6 +14,7 @@ from vlocnetpp_core.model.stages import (
     params_per_stream,
     stage_tasks,
     stream_of,
+    train_only,
     trainable_parameters,
 )
 from vlocnetpp_core.model.vlocnet import TASKS, StepOutput, StreamState, VLocNetPP
@@ -32,6 +33,7 @@ __all__ = [
     "params_per_stream",
     "stage_tasks",
     "stream_of",
+    "train_only",
     "trainable_parameters",
     "StepOutput",
     "StreamState",

@@ -92,6 +92,16 @@ def trainable_parameters(model: nn.Module, stage: str, frozen: Iterable[str] = (
     return (p for name, p in model.named_parameters() if is_trained_in(name, stage) and part_of(name) not in frozen)
 
 
+def train_only(model: nn.Module, stage: str, frozen: Iterable[str] = ()) -> list[nn.Parameter]:
+    """Let gradients reach only :func:`trainable_parameters` (``requires_grad``; every other weight of ``model``
+    is kept out of autograd) and return them: what a ``stage`` step with the ``frozen`` parts optimises."""
+    params = list(trainable_parameters(model, stage, frozen))
+    model.requires_grad_(False)
+    for p in params:
+        p.requires_grad_(True)
+    return params
+
+
 def params_per_stream(model: nn.Module) -> dict[str, int]:
     """Number of parameters (elements) per stream, every stream listed."""
     counts = dict.fromkeys(STREAMS, 0)
