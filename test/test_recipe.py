@@ -10,6 +10,7 @@ import yaml
 from vlocnetpp_core.checkpoint import read_checkpoint_meta
 from vlocnetpp_core.cli import main as cli
 from vlocnetpp_core.data import open_dataset
+from vlocnetpp_core.errors import UserError
 from vlocnetpp_core.model import load_model_config
 from vlocnetpp_core.recipe import load_recipe, stage_commands, stage_weights
 from vlocnetpp_core.retrieval import ReferenceSet
@@ -23,7 +24,8 @@ def _recipe(tmp_path, **changes) -> dict:
     recipe = {
         "config": str(tmp_path / "tiny.yaml"),
         "datasets": {"campus": {"synth": {"seed": 0, "loops": 3, "test_loops": 1, "frames_per_loop": 8, "size": [64, 48]}},
-                     "wander": {"synth": {"seed": 0, "loops": 3, "test_loops": 0, "frames_per_loop": 8, "size": [64, 48], "lane_wander": 1.0}}},
+                     "wander": {"synth": {"seed": 0, "loops": 3, "test_loops": 0, "frames_per_loop": 8, "size": [64, 48], "lane_wander": 1.0,
+                                         "spacing_scale": [0.8, 1.2]}}},
         "defaults": {"data": "campus", "batch_size": 2, "clip_len": 2, "workers": 0, "val_every": 2},
         "stages": [
             {"name": "vo", "stage": "stl-vo", "schedule": [{"steps": 2, "lr": 1e-3}], "parallel": "a", "threads": 1,
@@ -70,6 +72,7 @@ def test_recipe_runs_every_stage_exports_and_resumes(tmp_path, capsys):
         tuple(t) for name in ("campus", "wander") for t in _train_positions(out / "data" / name)}
     visits = json.loads((out / "data" / "wander" / "scene.json").read_text())["visits"]
     assert [v["pattern"]["lane_wander"] for v in visits] == [1.0] * 3  # the recipe's synth keys reach the renderer
+    assert all(0.8 <= v["pattern"]["spacing_scale"] <= 1.2 for v in visits) and len({v["pattern"]["spacing_scale"] for v in visits}) == 3
     assert meta["training"]["data"].endswith("wander")  # the stage's own data
 
     recipe = load_recipe(path)
@@ -89,6 +92,29 @@ def test_recipe_resumes_an_unfinished_schedule(tmp_path):
     assert command[command.index("--steps") + 1] == "4" and command[command.index("--lr") + 1] == "0.0001" and "--resume" in command
     assert command[command.index("--lr-end") + 1] == "1e-06"
     assert command.count("--init") == 1 and command[command.index("--init") + 1] == str(out / "vo" / "best.safetensors")
+
+
+def test_a_restart_entry_restarts_once_then_resumes(tmp_path):
+    """`restart: true`: the entry's command restarts the run (fresh optimiser) until the entry has begun; an
+    interrupted restart resumes as any entry; the first entry has nothing to restart from."""
+    stages = yaml.safe_load(_recipe(tmp_path).read_text())["stages"]
+    stages[2]["schedule"][1]["restart"] = True
+    path, out = _recipe(tmp_path, stages=stages), tmp_path / "run"
+    loc = load_recipe(path).stages[2]
+    first, second = stage_commands(loc, load_recipe(path), out)
+    assert "--restart" not in first and "--resume" not in first and "--restart" in second and "--resume" not in second
+    (out / "loc").mkdir(parents=True)
+    for step, flag in ((2, "--restart"), (3, "--resume")):
+        (out / "loc" / "train_state.json").write_text(json.dumps({"step": step}))
+        (command,) = stage_commands(loc, load_recipe(path), out)
+        other = "--resume" if flag == "--restart" else "--restart"
+        assert flag in command and other not in command
+    stages[2]["schedule"][0]["restart"] = True
+    with pytest.raises(UserError, match="the first schedule entry cannot restart"):
+        load_recipe(_recipe(tmp_path, stages=stages))
+    stages[2]["schedule"][0]["restart"] = "yes"
+    with pytest.raises(UserError, match="restart: true"):
+        load_recipe(_recipe(tmp_path, stages=stages))
 
 
 def test_a_stage_whose_weights_are_last_gives_its_last_checkpoint(tmp_path):

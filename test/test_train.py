@@ -280,6 +280,41 @@ def test_a_cosine_run_anneals_each_step_and_a_resume_continues_its_curve(tiny, t
     assert Trainer(build_parser("train").parse_args([*base, "--steps", "10"])).phase == LearningRatePhase(6, 1e-3, 1e-5, 10)
 
 
+def test_restart_keeps_weights_and_step_with_a_fresh_optimiser_and_loss_weights(tiny, tmp_path):
+    """--restart (a warm restart): the run's weights, step and best score come back, Adam's moments and the learned
+    loss weights start anew; --resume restores both. Adam's first step moves every weight by the rate exactly."""
+    from safetensors.torch import load_file
+
+    from vlocnetpp_core.checkpoint import read_checkpoint_tensors
+    from vlocnetpp_core.cli import build_parser
+    from vlocnetpp_core.lr_schedule import LearningRatePhase
+    from vlocnetpp_core.trainer import Trainer
+
+    data, config = tiny
+    out = tmp_path / "warm"
+    train(data, config, out, "stl-loc", 3, "--lr", "1e-3", "--threads", "1")
+    saved = load_file(str(out / "train_state.safetensors"))
+    assert float(saved["criterion.s_x"]) != 0.0 and float(saved["criterion.s_q"]) != -3.0  # learned over 3 steps
+    base = ["train", "--config", str(config), "--data", str(data), "--stage", "stl-loc", "--out", str(out), "--batch-size", "2",
+            "--clip-len", "2", "--workers", "0", "--no-progress", "--threads", "1", "--val-every", "4", "--steps", "4"]
+    parse = build_parser("train").parse_args
+    resumed = Trainer(parse([*base, "--resume"]))
+    assert resumed.optimizer.state and float(resumed.criterion.s_x.detach()) == float(saved["criterion.s_x"])
+    restarted = Trainer(parse([*base, "--restart", "--lr", "3e-4", "--lr-end", "1e-5"]))
+    assert restarted.step == 3 and not restarted.optimizer.state
+    assert (float(restarted.criterion.s_x.detach()), float(restarted.criterion.s_q.detach())) == (0.0, -3.0)
+    weights, _ = read_checkpoint_tensors(out / "last.safetensors")
+    assert all(torch.equal(restarted.model.state_dict()[k], v) for k, v in weights.items())
+    assert restarted.phase == LearningRatePhase(3, 3e-4, 1e-5, 4)
+    restarted.run()
+    assert steps_of(read_log(out))[-1]["lr"] == pytest.approx(3e-4)
+    after = load_file(str(out / "train_state.safetensors"))
+    assert abs(float(after["criterion.s_x"])) == pytest.approx(3e-4, rel=1e-4)
+    assert abs(float(after["criterion.s_q"]) + 3.0) == pytest.approx(3e-4, abs=5e-7)  # a float32 step near -3 (ulp 2.4e-7)
+    with pytest.raises(SystemExit):  # one or the other
+        parse([*base, "--resume", "--restart"])
+
+
 def _train_cmd(data: Path, config: Path, out: Path, steps: int) -> list[str]:
     return [sys.executable, "-m", "vlocnetpp_core.train", "--config", str(config), "--data", str(data), "--stage", "mtl",
             "--out", str(out), "--steps", str(steps), "--batch-size", "2", "--clip-len", "2", "--workers", "0",

@@ -16,7 +16,9 @@ weights. Example (``config/recipes/shipped.yaml`` is the shipped model's)::
 
 Stage keys: ``name`` (run folder), ``stage``, ``schedule`` (list of ``{steps, lr}``: train to
 ``steps`` in total at ``lr``, resuming from the previous entry; with ``lr_end: R`` the rate falls
-from ``lr`` to ``R`` along a half cosine over the entry, ``vlocnetpp train --lr-end``), ``init`` (stage names: their
+from ``lr`` to ``R`` along a half cosine over the entry, ``vlocnetpp train --lr-end``; with
+``restart: true`` the entry starts from the previous one's weights with a fresh optimiser state and
+the learned loss weights at their initial values, ``vlocnetpp train --restart``), ``init`` (stage names: their
 weights, in order), ``weights`` (which of a stage's checkpoints later stages' ``init`` and the export
 calibration take: ``best``, default, the lowest validation error, or ``last``, e.g. for a schedule whose
 last entry restarts the rate, where validation errors of different phases trade position against rotation), ``continue`` (a stage name: start as a copy of that stage's run
@@ -57,13 +59,24 @@ STAGE_KEYS = {"name", "stage", "schedule", "init", "data", "val_data", "parallel
 WEIGHTS = ("best", "last")
 
 
+@dataclass(frozen=True)
+class Entry:
+    """One schedule entry: train to ``steps`` (in total) at ``lr``, annealed to ``lr_end`` along a half cosine when set;
+    ``restart``: start it with a fresh optimiser state and the initial loss weights (a warm restart)."""
+
+    steps: int
+    lr: float
+    lr_end: float | None = None
+    restart: bool = False
+
+
 @dataclass
 class Stage:
     """One ``vlocnetpp train`` run of a recipe: its flags (argparse names, ``_`` separated) and schedule."""
 
     name: str
     stage: str
-    schedule: list[tuple[int, float, float | None]]
+    schedule: list[Entry]
     init: list[str] = field(default_factory=list)
     flags: dict = field(default_factory=dict)
     parallel: str | None = None
@@ -73,7 +86,7 @@ class Stage:
 
     @property
     def steps(self) -> int:
-        return self.schedule[-1][0]
+        return self.schedule[-1].steps
 
 
 @dataclass
@@ -103,12 +116,7 @@ def load_recipe(path: str | Path) -> Recipe:
         for key in ("name", "stage", "schedule"):
             if key not in entry:
                 raise UserError(f"{where}: missing '{key}'")
-        try:
-            schedule = [(int(s["steps"]), float(s["lr"]), None if s.get("lr_end") is None else float(s["lr_end"])) for s in entry["schedule"]]
-        except (TypeError, KeyError, ValueError, AttributeError):
-            raise UserError(f"{where}: 'schedule' must be a list of {{steps: N, lr: R}} (optionally lr_end: R, a cosine to R)") from None
-        if not schedule or any(b[0] < a[0] for a, b in zip(schedule[:-1], schedule[1:], strict=True)):
-            raise UserError(f"{where}: 'schedule' steps must be given in increasing order")
+        schedule = _schedule(entry["schedule"], where)
         for ref in [*(entry.get("init") or []), *([entry["continue"]] if "continue" in entry else [])]:
             if ref not in names:
                 raise UserError(f"{where}: '{ref}' (init or continue) is not an earlier stage")
@@ -134,6 +142,27 @@ def load_recipe(path: str | Path) -> Recipe:
                             f"({', '.join(datasets) or 'none'})")
         export = {**export, "reference": references}
     return Recipe(path, str(raw["config"]), datasets, stages, export)
+
+
+def _schedule(raw, where: str) -> list[Entry]:
+    """A stage's ``schedule`` list as entries; ``UserError`` for a malformed entry or steps out of order."""
+    try:
+        schedule = [Entry(int(s["steps"]), float(s["lr"]), None if s.get("lr_end") is None else float(s["lr_end"]), _flag(s.get("restart", False)))
+                    for s in raw]
+    except (TypeError, KeyError, ValueError, AttributeError):
+        raise UserError(f"{where}: 'schedule' must be a list of {{steps: N, lr: R}} (optionally lr_end: R, a cosine to R, "
+                        "and restart: true, a fresh optimiser state)") from None
+    if not schedule or any(b.steps < a.steps for a, b in zip(schedule[:-1], schedule[1:], strict=True)):
+        raise UserError(f"{where}: 'schedule' steps must be given in increasing order")
+    if schedule[0].restart:
+        raise UserError(f"{where}: the first schedule entry cannot restart (there is nothing before it to restart from)")
+    return schedule
+
+
+def _flag(value) -> bool:
+    if not isinstance(value, bool):
+        raise ValueError(f"expected true or false, got {value!r}")
+    return value
 
 
 def _stage_config(value: str, recipe_path: Path, where: str) -> str:
@@ -173,7 +202,8 @@ def prepare_datasets(recipe: Recipe, out: Path, log) -> None:
         s = spec["synth"]
         render_dataset(target, scene=s.get("scene", "campus"), seed=int(s.get("seed", 0)), train_loops=int(s.get("loops", 4)),
                        test_loops=int(s.get("test_loops", 2)), frames_per_loop=int(s.get("frames_per_loop", 175)),
-                       size=tuple(s.get("size", (320, 180))), lane_wander=float(s.get("lane_wander", 0.0)), progress=False)
+                       size=tuple(s.get("size", (320, 180))), lane_wander=float(s.get("lane_wander", 0.0)),
+                       spacing_scale=s.get("spacing_scale", (1.0, 1.0)), progress=False)
         log(f"dataset {name}: rendered in {time.monotonic() - t0:.0f} s")
 
 
@@ -215,14 +245,17 @@ def stage_commands(stage: Stage, recipe: Recipe, out: Path, python: str = sys.ex
             "--no-progress", *_flag_args(stage.flags, recipe, out)]
     for ref in stage.init:
         base += ["--init", str(stage_weights(recipe, ref, out).with_suffix(".safetensors"))]
-    commands = []
-    for steps, lr, lr_end in stage.schedule:
-        if done >= steps:
-            continue
-        resume = ["--resume"] if done > 0 or commands else []
-        anneal = [] if lr_end is None else ["--lr-end", f"{lr_end:g}"]
-        commands.append([*base, "--steps", str(steps), "--lr", f"{lr:g}", *anneal, *resume])
-        done = steps
+    commands, start = [], 0
+    for entry in stage.schedule:
+        if done < entry.steps:
+            if entry.restart and done <= start:  # not begun yet (an interrupted restart resumes as any entry)
+                again = ["--restart"]
+            else:
+                again = ["--resume"] if done > 0 or commands else []
+            anneal = [] if entry.lr_end is None else ["--lr-end", f"{entry.lr_end:g}"]
+            commands.append([*base, "--steps", str(entry.steps), "--lr", f"{entry.lr:g}", *anneal, *again])
+            done = entry.steps
+        start = entry.steps
     return commands
 
 

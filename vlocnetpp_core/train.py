@@ -58,7 +58,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help=f"keep these parts of the network as they are, weights and BatchNorm statistics ({', '.join(PARTS)}); "
                         "e.g. mtl that trains only the global stream with its Res4c semantic fusion: "
                         "--freeze trunk,odometry,semantic,depth_head (default: none; a pose stage on the other's trunk freezes the trunk)")
-    p.add_argument("--resume", action="store_true", help="continue the run in --out exactly where it stopped")
+    again = p.add_mutually_exclusive_group()
+    again.add_argument("--resume", action="store_true", help="continue the run in --out exactly where it stopped")
+    again.add_argument("--restart", action="store_true",
+                       help="continue the run in --out from its weights and step with a fresh optimiser state (Adam's moments) "
+                            "and the learned loss weights at their initial values: a warm restart, e.g. with a new --lr/--lr-end cosine")
     p.add_argument("--batch-size", type=int, default=32, help="clips per optimiser step, over all ranks (paper: 32)")
     p.add_argument("--clip-len", type=int, default=3, help="frames per training clip, unrolled through the network (default 3)")
     p.add_argument("--frame-strides", type=_strides, default=(1,), metavar="S[,S...]",

@@ -44,8 +44,8 @@ class Trainer:
         self._setup_model()
         self.step, self.best, self.reference, self.calibration = 0, math.inf, None, None
         self.phase = LearningRatePhase(0, self.lr, args.lr_end, self.total)
-        if args.resume:
-            self._resume()
+        if args.resume or args.restart:
+            self._resume(fresh=args.restart)
         self.net = torch.nn.parallel.DistributedDataParallel(self.model, find_unused_parameters=True) if self.distributed else self.model
 
     def log(self, msg: str) -> None:
@@ -144,13 +144,15 @@ class Trainer:
             raise UserError(f"--freeze {','.join(missing)}: this network (--config {self.args.config}) has no such part")
         return tuple(sorted(frozen))
 
-    def _resume(self) -> None:
-        """Weights, optimiser, loss weights, RNG, step and best score of the run in ``--out``; ``--lr`` steps the rate."""
+    def _resume(self, fresh: bool = False) -> None:
+        """Weights, optimiser, loss weights, RNG, step and best score of the run in ``--out``; ``--lr`` steps the rate.
+        ``fresh`` (``--restart``, a warm restart): the optimiser state (Adam's moments) and the learned loss weights start
+        anew, as at the start of the run, and only the weights, RNG, step and best score come back."""
         from vlocnetpp_core.checkpoint import read_checkpoint_tensors
         from vlocnetpp_core.train_state import load_train_state
 
         args, out = self.args, self.out
-        meta = load_train_state(out, optimizer=self.optimizer, criterion=self.criterion)
+        meta = load_train_state(out, optimizer=None if fresh else self.optimizer, criterion=None if fresh else self.criterion)
         saved_strides = tuple(meta.get("args", {}).get("frame_strides") or args.frame_strides)
         if saved_strides != args.frame_strides:  # the saved (epoch, offset) indexes that clip list
             raise UserError(f"{out}: the run trained with --frame-strides {','.join(map(str, saved_strides))}; "
@@ -158,13 +160,13 @@ class Trainer:
         tensors, _ = read_checkpoint_tensors(out / "last.safetensors")
         self.model.load_state_dict({k: v.to(self.device) for k, v in tensors.items()})
         self.step, self.reference = int(meta["step"]), meta.get("best_reference")
-        saved_lr = self.optimizer.param_groups[0]["lr"]
+        saved_lr = float(meta["optimizer"]["param_groups"][0]["lr"])
         self.lr = saved_lr if args.lr is None else args.lr  # --resume --lr 1e-4: a step-down for the last part of a run
         self.phase = LearningRatePhase(self.step, self.lr, args.lr_end, self.total).continues(meta.get("lr_phase"))
         if self.phase.start == self.step and self.phase.at(self.step) != saved_lr:
             self.log(f"learning rate {saved_lr:g} -> {self.phase.at(self.step):g} from step {self.step}")
         self.best = float(meta.get("best", math.inf))
-        self.log(f"resumed at step {self.step}")
+        self.log(f"{'restarted (fresh optimiser state and loss weights)' if fresh else 'resumed'} at step {self.step}")
 
     # ------------------------------------------------------------------ the loop
 
