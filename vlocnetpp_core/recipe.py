@@ -25,13 +25,12 @@ last entry restarts the rate, where validation errors of different phases trade 
 folder and resume it, e.g. to use a stage's early weights as another's init and train it on),
 ``data`` / ``val_data`` (dataset names), ``config`` (this stage's model config instead of the
 recipe's: a built-in name or a YAML file relative to the recipe; e.g. a stage that learns a
-shared trunk with another head), ``parallel`` (stages with
-the same value that follow each other run side by side, e.g. two single-thread stages on two
-cores), and any other ``vlocnetpp train`` flag (``threads``, ``frame_strides``, ``s_q_init``,
-``val_split``, ...; lists become comma-separated). Every stage runs as its own process (its
-thread count is its own), logs to ``DIR/<name>.log``, and is resumable: running the recipe
-again skips finished schedule entries and resumes an interrupted one exactly. The time of each
-stage is added to ``DIR/timings.json`` and printed.
+shared trunk with another head), and any other ``vlocnetpp train`` flag (``threads``, ``frame_strides``,
+``s_q_init``, ``val_split``, ...; lists become comma-separated). Running it (:mod:`vlocnetpp_core.recipe_run`):
+every stage is its own process (its thread count its own), starts as soon as the stages it takes weights
+from have finished and its ``threads`` fit in the free cores, logs to ``DIR/<name>.log``, and is
+resumable: running the recipe again skips finished schedule entries and resumes an interrupted one
+exactly. The time of each stage is added to ``DIR/timings.json`` and printed.
 
 ``export``: the ``weights`` (``best``, default, or ``last``) of ``stage`` written to ``to``
 (``NAME``: ``NAME.safetensors`` + ``NAME.json``) in ``dtype``, with the covariance calibration
@@ -44,10 +43,7 @@ a list of datasets: all their training images, e.g. every image whose pose the n
 from __future__ import annotations
 
 import json
-import shlex
-import subprocess
 import sys
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -55,7 +51,7 @@ import yaml
 
 from vlocnetpp_core.errors import UserError
 
-STAGE_KEYS = {"name", "stage", "schedule", "init", "data", "val_data", "parallel", "continue", "config", "weights"}
+STAGE_KEYS = {"name", "stage", "schedule", "init", "data", "val_data", "continue", "config", "weights"}
 WEIGHTS = ("best", "last")
 
 
@@ -79,7 +75,6 @@ class Stage:
     schedule: list[Entry]
     init: list[str] = field(default_factory=list)
     flags: dict = field(default_factory=dict)
-    parallel: str | None = None
     continues: str | None = None
     config: str | None = None  # model config of this stage (default: the recipe's)
     weights: str = "best"  # the checkpoint later stages take from this one (best or last)
@@ -116,6 +111,9 @@ def load_recipe(path: str | Path) -> Recipe:
         for key in ("name", "stage", "schedule"):
             if key not in entry:
                 raise UserError(f"{where}: missing '{key}'")
+        if "parallel" in entry:
+            raise UserError(f"{where}: 'parallel' is gone: stages now start as soon as their inits are done and their "
+                            "threads fit in the free cores (give each stage's threads instead)")
         schedule = _schedule(entry["schedule"], where)
         for ref in [*(entry.get("init") or []), *([entry["continue"]] if "continue" in entry else [])]:
             if ref not in names:
@@ -129,8 +127,8 @@ def load_recipe(path: str | Path) -> Recipe:
         names.add(entry["name"])
         config = None if entry.get("config") is None else _stage_config(str(entry["config"]), path, where)
         flags = {key: v for key, v in entry.items() if key not in STAGE_KEYS - {"data", "val_data"}}
-        stages.append(Stage(entry["name"], entry["stage"], schedule, list(entry.get("init") or []), flags, entry.get("parallel"),
-                            entry.get("continue"), config, weights))
+        stages.append(Stage(entry["name"], entry["stage"], schedule, list(entry.get("init") or []), flags, entry.get("continue"),
+                            config, weights))
     export = raw.get("export")
     if export is not None and export.get("stage") not in names:
         raise UserError(f"{path}: export stage '{export.get('stage')}' is not one of the stages")
@@ -186,27 +184,6 @@ def dataset_path(recipe: Recipe, name: str, out: Path) -> Path:
     return Path(spec["path"]) if "path" in spec else out / "data" / name
 
 
-def prepare_datasets(recipe: Recipe, out: Path, log) -> None:
-    """Render every ``synth`` dataset that is not there yet (``OUT/data/NAME``)."""
-    from vlocnetpp_core.synth import render_dataset
-
-    for name, spec in recipe.datasets.items():
-        target = dataset_path(recipe, name, out)
-        if "path" in spec:
-            if not target.is_dir():
-                raise UserError(f"{recipe.path}: dataset '{name}': {target} not found")
-            continue
-        if target.is_dir():
-            continue
-        t0 = time.monotonic()
-        s = spec["synth"]
-        render_dataset(target, scene=s.get("scene", "campus"), seed=int(s.get("seed", 0)), train_loops=int(s.get("loops", 4)),
-                       test_loops=int(s.get("test_loops", 2)), frames_per_loop=int(s.get("frames_per_loop", 175)),
-                       size=tuple(s.get("size", (320, 180))), lane_wander=float(s.get("lane_wander", 0.0)),
-                       spacing_scale=s.get("spacing_scale", (1.0, 1.0)), progress=False)
-        log(f"dataset {name}: rendered in {time.monotonic() - t0:.0f} s")
-
-
 def _flag_args(flags: dict, recipe: Recipe, out: Path) -> list[str]:
     args = []
     for key, value in flags.items():
@@ -257,77 +234,3 @@ def stage_commands(stage: Stage, recipe: Recipe, out: Path, python: str = sys.ex
             done = entry.steps
         start = entry.steps
     return commands
-
-
-def continue_run(stage: Stage, out: Path) -> None:
-    """A stage that ``continue``s another starts as a copy of that stage's run folder (then resumes it)."""
-    import shutil
-
-    if stage.continues and not (out / stage.name).exists():
-        tmp = out / f".{stage.name}.copy"
-        shutil.rmtree(tmp, ignore_errors=True)
-        shutil.copytree(out / stage.continues, tmp)
-        tmp.rename(out / stage.name)
-
-
-def _run_group(group: list[Stage], recipe: Recipe, out: Path, log) -> None:
-    """Run the stages of ``group`` side by side (each its commands in order); raise when one fails."""
-    t0 = time.monotonic()
-    procs = []
-    for stage in group:
-        continue_run(stage, out)
-        commands = stage_commands(stage, recipe, out)
-        if not commands:
-            continue
-        script = " && ".join(shlex.join(c) for c in commands)
-        logf = open(out / f"{stage.name}.log", "a")
-        log(f"stage {stage.name}: {stage.stage} to step {stage.steps} (log {out / f'{stage.name}.log'})")
-        procs.append((stage, subprocess.Popen(["bash", "-c", script], stdout=logf, stderr=subprocess.STDOUT), logf))
-    failed = []
-    for stage, proc, logf in procs:
-        if proc.wait() != 0:
-            failed.append(stage.name)
-        logf.close()
-    if failed:
-        raise UserError(f"stage {', '.join(failed)} failed; see {', '.join(str(out / f'{n}.log') for n in failed)} (run the recipe again to resume)")
-    if procs:
-        _record_time(out, "+".join(s.name for s, _, _ in procs), time.monotonic() - t0, log)
-
-
-def _record_time(out: Path, name: str, seconds: float, log) -> None:
-    path = out / "timings.json"
-    timings = json.loads(path.read_text()) if path.is_file() else {}
-    timings[name] = timings.get(name, 0.0) + seconds
-    tmp = path.with_name(".timings.json.tmp")
-    tmp.write_text(json.dumps(timings, indent=2) + "\n")
-    tmp.replace(path)
-    log(f"{name}: {seconds / 60:.1f} min (in total {timings[name] / 60:.1f} min)")
-
-
-def groups(stages: list[Stage]) -> list[list[Stage]]:
-    """Consecutive stages with the same ``parallel`` value form one group; the others run alone."""
-    out: list[list[Stage]] = []
-    for stage in stages:
-        if out and stage.parallel is not None and out[-1][-1].parallel == stage.parallel:
-            out[-1].append(stage)
-        else:
-            out.append([stage])
-    return out
-
-
-def run_recipe(path: str | Path, out: str | Path) -> int:
-    recipe = load_recipe(path)
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-
-    def log(msg: str) -> None:
-        print(f"[recipe {time.strftime('%H:%M:%S')}] {msg}", flush=True)
-
-    prepare_datasets(recipe, out, log)
-    for group in groups(recipe.stages):
-        _run_group(group, recipe, out, log)
-    if recipe.export:
-        from vlocnetpp_core.recipe_export import export_weights
-
-        log(f"export: {export_weights(recipe, out)}")
-    return 0

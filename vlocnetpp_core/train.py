@@ -114,7 +114,7 @@ def _parts(text: str) -> tuple[str, ...]:
 
 def run(args: argparse.Namespace) -> int:
     if args.recipe:
-        from vlocnetpp_core.recipe import run_recipe
+        from vlocnetpp_core.recipe_run import run_recipe
 
         return run_recipe(args.recipe, args.out)
     missing = [f"--{k}" for k in ("config", "data", "stage") if getattr(args, k) is None]
