@@ -19,7 +19,7 @@ from vlocnetpp_core.data.pfm import read_pfm
 from vlocnetpp_core.errors import UserError
 from vlocnetpp_core.synth import Campus, default_intrinsics, plan_visit, render_dataset, render_frame
 from vlocnetpp_core.synth.campus import BUILDING, GRASS, LANES, ROAD, SIDEWALK, SKY
-from vlocnetpp_core.synth.drive import MAX_LANE_OFFSET_M, MAX_SPACING_M
+from vlocnetpp_core.synth.drive import MAX_LANE_OFFSET_M
 from vlocnetpp_core.synth.prims import BOX
 
 SMALL = dict(train_loops=2, test_loops=1, frames_per_loop=5, size=(96, 54), progress=False)
@@ -145,30 +145,9 @@ def test_lane_wander_drifts_across_the_road_and_changes_nothing_else():
     assert np.all(wander_d <= MAX_LANE_OFFSET_M + 0.1) and np.all(np.abs(drift) <= 2.0 + plain.pattern.weave_amplitude + 0.1)
 
 
-def test_spacing_scale_spaces_each_visit_by_its_own_factor_and_changes_nothing_else():
-    """``spacing_scale=(lo, hi)``: each visit's time between frames times its own factor from that range, the frames
-    that much further apart along the same drive; the default spacing stays within MAX_SPACING_M; (1, 1) is the plain visit."""
-    campus = Campus("campus")
-    plain = plan_visit(campus, 4, "train", 2, 250)
-    np.testing.assert_array_equal(plan_visit(campus, 4, "train", 2, 250, spacing_scale=(1.0, 1.0)).t, plain.t)
-    scales = []
-    for loop in range(6):
-        base, scaled = plan_visit(campus, 4, "train", loop, 250), plan_visit(campus, 4, "train", loop, 250, spacing_scale=(0.6, 1.6))
-        scale = scaled.pattern.spacing_scale
-        assert 0.6 <= scale <= 1.6 and scaled.lighting == base.lighting
-        assert dataclasses.replace(scaled.pattern, spacing_scale=1.0) == base.pattern
-        assert scaled.frame_interval == pytest.approx(base.frame_interval * scale, rel=1e-12)  # 1.2 m apart at most: not capped
-        np.testing.assert_array_equal(scaled.t[0], base.t[0])  # the same start, then further along the same route
-        scales.append(scale)
-    assert len(set(scales)) == 6 and max(scales) - min(scales) > 0.3
-    fast = plan_visit(campus, 4, "train", 2, 250, spacing_scale=(4.0, 4.0))
-    assert fast.info()["max_spacing_m"] <= MAX_SPACING_M + 1e-6  # capped like the default spacing
-
-
 @pytest.mark.parametrize("bad", [dict(size=(8, 8)), dict(frames_per_loop=0), dict(train_loops=0, test_loops=0), dict(seed=-1), dict(scene="two\nlines"),
                                  dict(test_lane_offset=9.0), dict(test_lane_offset=float("nan")), dict(lane_wander=-1.0),
-                                 dict(lane_wander=float("inf")), dict(spacing_scale=(0.1, 1.0)), dict(spacing_scale=(1.6, 0.6)),
-                                 dict(spacing_scale=1.5)])
+                                 dict(lane_wander=float("inf"))])
 def test_bad_arguments_are_user_errors(tmp_path, bad):
     args = dict(SMALL, **bad)
     with pytest.raises(UserError):

@@ -84,8 +84,7 @@ def _render(target: Path, synth: dict) -> None:
 
     render_dataset(target, scene=synth.get("scene", "campus"), seed=int(synth.get("seed", 0)), train_loops=int(synth.get("loops", 4)),
                    test_loops=int(synth.get("test_loops", 2)), frames_per_loop=int(synth.get("frames_per_loop", 175)),
-                   size=tuple(synth.get("size", (320, 180))), lane_wander=float(synth.get("lane_wander", 0.0)),
-                   spacing_scale=synth.get("spacing_scale", (1.0, 1.0)), progress=False)
+                   size=tuple(synth.get("size", (320, 180))), lane_wander=float(synth.get("lane_wander", 0.0)), progress=False)
 
 
 @dataclass

@@ -15,14 +15,6 @@ def _size(text: str) -> tuple[int, int]:
     return w, h
 
 
-def _range(text: str) -> tuple[float, float]:
-    try:
-        lo, hi = (float(v) for v in text.split(","))
-    except ValueError as err:
-        raise argparse.ArgumentTypeError(f"expected LO,HI, e.g. 0.6,1.6, got {text!r}") from err
-    return lo, hi
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from vlocnetpp_core.synth.writer import DEFAULT_FRAMES_PER_LOOP
 
@@ -41,10 +33,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--lane-wander", type=float, default=0.0, metavar="METRES",
                         help="let every train loop drift slowly up to this far either side of its lane (e.g. 1.5: the train "
                              "loops then cover the road between the lanes; default: 0, keep to the lane)")
-    parser.add_argument("--spacing-scale", type=_range, default=(1.0, 1.0), metavar="LO,HI",
-                        help="space every train loop's frames by its own factor drawn from [LO, HI] (another camera rate or speed; "
-                             "e.g. 0.6,1.6: the odometry then sees every motion between frames in that range, not one per circuit; "
-                             "default: 1,1)")
     parser.add_argument("--force", action="store_true", help="replace OUT if it exists")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
@@ -62,7 +50,7 @@ def run(args: argparse.Namespace) -> int:
             args.out, scene=args.scene, seed=args.seed, train_loops=args.loops, test_loops=args.test_loops,
             frames_per_loop=args.frames_per_loop, size=args.size, force=args.force, progress=not args.no_progress,
             frame_interval=args.frame_interval, test_lane_offset=args.test_lane_offset,
-            lane_wander=args.lane_wander, spacing_scale=args.spacing_scale,
+            lane_wander=args.lane_wander,
         )
     finally:
         if previous is not None:

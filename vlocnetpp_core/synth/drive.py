@@ -48,7 +48,6 @@ class DrivingPattern:
     heading_bias_deg: float
     start_fraction: float  # where on the circuit the visit starts
     lane_wander: float = 0.0  # m: slow drift either side of the lane (0: keeps to the lane)
-    spacing_scale: float = 1.0  # the visit's time between frames (its camera rate) times this: its frames this much further apart
 
 
 @dataclass
@@ -138,17 +137,14 @@ def choose_pattern(rng: np.random.Generator, split: str, loop: int, combo_offset
 
 
 def plan_visit(campus: Campus, seed: int, split: str, loop: int, frames: int, frame_interval: float | None = None,
-               lane_offset: float | None = None, lane_wander: float = 0.0, spacing_scale: tuple[float, float] | None = None) -> Visit:
+               lane_offset: float | None = None, lane_wander: float = 0.0) -> Visit:
     """The ``loop``-th visit of ``split`` for ``seed``: ``frames`` camera poses plus lighting and movers.
 
     ``lane_offset`` (metres right of the circuit's centreline) replaces the lane the visit drew, e.g.
     to drive between the lanes that training visits use; everything else about the visit is unchanged.
     ``lane_wander`` (metres) lets the visit drift slowly up to that far either side of its lane (over
     :data:`WANDER_WAVELENGTHS_M`, never beyond :data:`MAX_LANE_OFFSET_M`), so that visits cover the
-    road between the lanes; 0 leaves the visit exactly as without it. ``spacing_scale`` ``(lo, hi)`` multiplies the
-    time between frames by a factor drawn uniformly from that range (as another camera rate or speed would: the frames
-    lie that much further apart, the default spacing never beyond :data:`MAX_SPACING_M`), so that visits show the
-    odometry every motion between frames; ``None`` or ``(1, 1)`` leaves the visit as without it.
+    road between the lanes; 0 leaves the visit exactly as without it.
     """
     if split not in SPLIT_CODES:
         raise ValueError(f"split must be train or test, got {split!r}")
@@ -171,13 +167,8 @@ def plan_visit(campus: Campus, seed: int, split: str, loop: int, frames: int, fr
     lap = np.arange(0.0, L + _DS, _DS)
     speed = _speed_profile(rng, path, s_start, lap, pattern)
     t_lap = float(np.sum(_DS / speed[:-1]))
-    if spacing_scale is not None and tuple(spacing_scale) != (1.0, 1.0):  # its own random stream, as the wander's
-        scale = float(np.random.default_rng([base_seed, SPLIT_CODES[split], int(loop), 2]).uniform(*spacing_scale))
-        pattern = replace(pattern, spacing_scale=scale)
     if frame_interval is None:
-        frame_interval = min(t_lap / frames * pattern.spacing_scale, MAX_SPACING_M / float(speed.max()))
-    else:
-        frame_interval *= pattern.spacing_scale
+        frame_interval = min(t_lap / frames, MAX_SPACING_M / float(speed.max()))
     if frame_interval <= 0:
         raise ValueError("frame_interval must be positive")
     laps = max(1, int(math.ceil((frames - 1) * frame_interval / t_lap + 1e-9)))

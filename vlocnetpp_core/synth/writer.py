@@ -75,16 +75,6 @@ def _check_args(scene: str, seed: int, train_loops: int, test_loops: int, frames
     return w, h
 
 
-def _spacing_scale(value) -> tuple[float, float]:
-    try:
-        lo, hi = (float(v) for v in value)
-    except (TypeError, ValueError):
-        raise UserError(f"--spacing-scale must be two numbers LO,HI, got {value!r}") from None
-    if not (math.isfinite(hi) and 0.25 <= lo <= hi <= 4.0):
-        raise UserError(f"--spacing-scale must satisfy 0.25 <= LO <= HI <= 4, got {lo:g},{hi:g}")
-    return lo, hi
-
-
 def render_dataset(
     out: str | Path,
     scene: str = "campus",
@@ -98,7 +88,6 @@ def render_dataset(
     frame_interval: float | None = None,
     test_lane_offset: float | None = None,
     lane_wander: float = 0.0,
-    spacing_scale: tuple[float, float] = (1.0, 1.0),
 ) -> dict:
     """Render ``train_loops`` + ``test_loops`` visits of campus ``scene`` into ``out``; returns a summary dict.
 
@@ -106,8 +95,7 @@ def render_dataset(
     default each loop's frames are spread over one lap of its circuit. ``test_lane_offset``
     (metres right of the centreline, at most :data:`MAX_LANE_OFFSET_M` either way) drives the test
     loops there instead of in one of the four lanes. ``lane_wander`` (metres) lets every train loop
-    drift slowly up to that far either side of its lane, ``spacing_scale`` ``(lo, hi)`` spaces every train loop's
-    frames by its own factor drawn from that range (``plan_visit``). Raises :class:`UserError` for bad arguments or
+    drift slowly up to that far either side of its lane (``plan_visit``). Raises :class:`UserError` for bad arguments or
     an existing ``out`` without ``force``.
     """
     w, h = _check_args(scene, seed, train_loops, test_loops, frames_per_loop, size, frame_interval)
@@ -115,7 +103,6 @@ def render_dataset(
         raise UserError(f"--test-lane-offset must be within +-{MAX_LANE_OFFSET_M:g} m of the centreline (the sidewalks), got {test_lane_offset}")
     if not (math.isfinite(lane_wander) and 0 <= lane_wander <= MAX_LANE_OFFSET_M):
         raise UserError(f"--lane-wander must be within 0 and {MAX_LANE_OFFSET_M:g} m, got {lane_wander}")
-    spacing_scale = _spacing_scale(spacing_scale)
     out = Path(out)
     if out.exists() and not force:
         raise UserError(f"{out} already exists (use --force to replace it)")
@@ -125,7 +112,7 @@ def render_dataset(
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
     try:
         summary = _render_into(tmp, scene, int(seed), train_loops, test_loops, frames_per_loop, (w, h), progress, frame_interval,
-                               test_lane_offset, lane_wander, spacing_scale)
+                               test_lane_offset, lane_wander)
         if out.exists():
             old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
             os.replace(out, old / "data")
@@ -147,7 +134,7 @@ def render_dataset(
 
 def _render_into(root: Path, scene: str, seed: int, train_loops: int, test_loops: int, frames: int, size: tuple[int, int],
                  progress: bool, frame_interval: float | None, test_lane_offset: float | None = None,
-                 lane_wander: float = 0.0, spacing_scale: tuple[float, float] = (1.0, 1.0)) -> dict:
+                 lane_wander: float = 0.0) -> dict:
     from tqdm import tqdm
 
     t_start = time.perf_counter()
@@ -177,7 +164,7 @@ def _render_into(root: Path, scene: str, seed: int, train_loops: int, test_loops
             for loop in range(n_loops):
                 train = split == "train"  # wander moves the train loops, the lane offset the test loops
                 visit = plan_visit(campus, seed, split, loop, frames, frame_interval, None if train else test_lane_offset,
-                                   lane_wander if train else 0.0, spacing_scale if train else None)
+                                   lane_wander if train else 0.0)
                 info = visit.info()
                 info["first_id"] = loop * ID_STRIDE + 1
                 loop_info.append(info)
