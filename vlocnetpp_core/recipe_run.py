@@ -61,13 +61,13 @@ def prepare_datasets(recipe: Recipe, out: Path, log, cores: int = 1) -> None:
             if not target.is_dir():
                 raise UserError(f"{recipe.path}: dataset '{name}': {target} not found")
         elif not target.is_dir():
-            todo.append((name, target, spec["synth"]))
+            todo.append((name, target, _synth_args(spec["synth"])))
     if not todo:
         return
     t0 = time.monotonic()
-    todo.sort(key=lambda item: -_frames(item[2]))  # the longest first, so the others fill the remaining cores
+    todo.sort(key=lambda item: -(item[2]["train_loops"] + item[2]["test_loops"]) * item[2]["frames_per_loop"])  # longest first
     with ProcessPoolExecutor(min(cores, len(todo)), mp_context=get_context("spawn")) as pool:
-        started = {pool.submit(_render, target, synth): (name, time.monotonic()) for name, target, synth in todo}
+        started = {pool.submit(_render, target, args): (name, time.monotonic()) for name, target, args in todo}
         for done in as_completed(started):
             done.result()  # a UserError (bad synth keys) surfaces here, with its message
             name, start = started[done]
@@ -75,16 +75,17 @@ def prepare_datasets(recipe: Recipe, out: Path, log, cores: int = 1) -> None:
     record_time(out, "datasets", time.monotonic() - t0, log)
 
 
-def _frames(synth: dict) -> int:
-    return (int(synth.get("loops", 4)) + int(synth.get("test_loops", 2))) * int(synth.get("frames_per_loop", 175))
+def _synth_args(synth: dict) -> dict:
+    """A dataset's ``synth`` keys as ``render_dataset`` arguments (the recipe's defaults filled in)."""
+    return {"scene": synth.get("scene", "campus"), "seed": int(synth.get("seed", 0)), "train_loops": int(synth.get("loops", 4)),
+            "test_loops": int(synth.get("test_loops", 2)), "frames_per_loop": int(synth.get("frames_per_loop", 175)),
+            "size": tuple(synth.get("size", (320, 180))), "lane_wander": float(synth.get("lane_wander", 0.0))}
 
 
-def _render(target: Path, synth: dict) -> None:
+def _render(target: Path, args: dict) -> None:
     from vlocnetpp_core.synth import render_dataset
 
-    render_dataset(target, scene=synth.get("scene", "campus"), seed=int(synth.get("seed", 0)), train_loops=int(synth.get("loops", 4)),
-                   test_loops=int(synth.get("test_loops", 2)), frames_per_loop=int(synth.get("frames_per_loop", 175)),
-                   size=tuple(synth.get("size", (320, 180))), lane_wander=float(synth.get("lane_wander", 0.0)), progress=False)
+    render_dataset(target, **args, progress=False)
 
 
 @dataclass
