@@ -16,6 +16,8 @@ from vlocnetpp_core.recipe import load_recipe, stage_commands, stage_weights
 from vlocnetpp_core.recipe_run import run_recipe
 from vlocnetpp_core.retrieval import ReferenceSet
 
+WANDER = {"synth": {"seed": 0, "loops": 3, "test_loops": 0, "frames_per_loop": 8, "size": [64, 48], "lane_wander": 1.0}}
+
 
 def _recipe(tmp_path, **changes) -> dict:
     cfg = load_model_config("lite").to_dict()
@@ -25,7 +27,7 @@ def _recipe(tmp_path, **changes) -> dict:
     recipe = {
         "config": str(tmp_path / "tiny.yaml"),
         "datasets": {"campus": {"synth": {"seed": 0, "loops": 3, "test_loops": 1, "frames_per_loop": 8, "size": [64, 48]}},
-                     "wander": {"synth": {"seed": 0, "loops": 3, "test_loops": 0, "frames_per_loop": 8, "size": [64, 48], "lane_wander": 1.0}}},
+                     "wander": WANDER},
         "defaults": {"data": "campus", "batch_size": 2, "clip_len": 2, "workers": 0, "val_every": 2},
         "stages": [
             {"name": "vo", "stage": "stl-vo", "schedule": [{"steps": 2, "lr": 1e-3}], "threads": 1,
@@ -56,11 +58,15 @@ def test_recipe_runs_every_stage_exports_and_resumes(tmp_path, capsys):
     def line(text: str) -> int:
         return next(i for i, msg in enumerate(printed) if text in msg)
 
-    # vo and seg (one thread each) side by side on the two cores; loc once vo (its init) is done; seg-more once seg is
-    assert max(line("stage vo:"), line("stage seg:")) < min(line("] vo: "), line("] seg: "))
-    assert line("stage loc:") > line("] vo: ") and line("stage seg-more:") > line("] seg: ") and line("export:") > line("] loc: ")
+    # both datasets render side by side on the two cores, campus (vo's and seg's data) first; vo and seg start once it
+    # is rendered, loc once vo (its init) and wander (its data) are done, seg-more once seg is
+    assert line("start dataset campus:") < line("start dataset wander:") < min(line("] dataset campus: "), line("] dataset wander: "))
+    assert line("] dataset campus: ") < min(line("start vo:"), line("start seg:"))
+    assert line("start loc:") > max(line("] vo: "), line("] dataset wander: "))
+    assert line("start seg-more:") > line("] seg: ") and line("export:") > line("] loc: ")
     timings = json.loads((out / "timings.json").read_text())
-    assert set(timings) == {"datasets", "vo", "seg", "loc", "seg-more", "recipe (end to end)"} and all(v > 0 for v in timings.values())
+    assert set(timings) == {"dataset campus", "dataset wander", "vo", "seg", "loc", "seg-more", "recipe (end to end)"}
+    assert all(v > 0 for v in timings.values())
     more = [json.loads(line) for line in (out / "seg-more" / "log.jsonl").read_text().splitlines() if "validation" not in line]
     assert [r["step"] for r in more] == [1, 2, 3]  # seg's two steps (its copied run), then one more, resumed
     log = [json.loads(line) for line in (out / "loc" / "log.jsonl").read_text().splitlines() if "validation" not in line]
@@ -83,7 +89,7 @@ def test_recipe_runs_every_stage_exports_and_resumes(tmp_path, capsys):
     recipe = load_recipe(path)
     assert all(stage_commands(s, recipe, out) == [] for s in recipe.stages)  # finished: nothing left to run
     assert cli(["train", "--recipe", str(path), "--out", str(out)]) == 0
-    assert "stage " not in capsys.readouterr().out  # no stage ran again
+    assert "start " not in capsys.readouterr().out  # no dataset rendered again, no stage ran again
     again = json.loads((out / "timings.json").read_text())
     assert again.pop("recipe (end to end)") >= timings.pop("recipe (end to end)") and again == timings  # only the export again
 
@@ -141,6 +147,9 @@ def test_a_stage_whose_weights_are_last_gives_its_last_checkpoint(tmp_path):
     ({"stages": [{"name": "vo", "stage": "stl-vo", "weights": "final", "schedule": [{"steps": 2, "lr": 1e-3}]}]},
      "weights must be one of best, last"),
     ({"stages": [{"name": "vo", "stage": "stl-vo", "parallel": "a", "schedule": [{"steps": 2, "lr": 1e-3}]}]}, "'parallel' is gone"),
+    ({"datasets": {"campus": {"synth": {"loops": 2, "lane_wonder": 1.0}}, "wander": WANDER}}, "unknown synth key 'lane_wonder'"),
+    ({"datasets": {"campus": {"synth": {"loops": "many"}}, "wander": WANDER}}, "dataset 'campus': bad synth value"),
+    ({"datasets": {"campus": {"render": {"loops": 2}}, "wander": WANDER}}, "a dataset is {synth: {...}} (rendered) or {path: DIR}"),
     ({"export": {"stage": "mtl"}}, "export stage 'mtl'"),
     ({"export": {"stage": "loc", "reference": ["campus", "nope"]}}, "export reference 'nope' is not one of the recipe's datasets"),
 ])
@@ -155,7 +164,7 @@ def test_a_failing_stage_names_its_log(tmp_path, capsys):
     path = _recipe(tmp_path, stages=[{"name": "vo", "stage": "stl-vo", "schedule": [{"steps": 2, "lr": 1e-3}], "frame_strides": [0]}], export=None)
     assert cli(["train", "--recipe", str(path), "--out", str(tmp_path / "run")]) == 2
     err = capsys.readouterr().err
-    assert "stage vo failed" in err and str(tmp_path / "run" / "vo.log") in err
+    assert "vo failed: " in err and str(tmp_path / "run" / "vo.log") in err and "frame" in err  # the log's last line
 
 
 def test_train_without_recipe_needs_config_data_and_stage(tmp_path, capsys):

@@ -27,8 +27,9 @@ folder and resume it, e.g. to use a stage's early weights as another's init and 
 recipe's: a built-in name or a YAML file relative to the recipe; e.g. a stage that learns a
 shared trunk with another head), and any other ``vlocnetpp train`` flag (``threads``, ``frame_strides``,
 ``s_q_init``, ``val_split``, ...; lists become comma-separated). Running it (:mod:`vlocnetpp_core.recipe_run`):
-every stage is its own process (its thread count its own), starts as soon as the stages it takes weights
-from have finished and its ``threads`` fit in the free cores, logs to ``DIR/<name>.log``, and is
+every dataset render and every stage is its own process (a stage's thread count its own); a stage starts as
+soon as its datasets are rendered, the stages it takes weights from have finished and its ``threads`` fit
+in the free cores, logs to ``DIR/<name>.log``, and is
 resumable: running the recipe again skips finished schedule entries and resumes an interrupted one
 exactly. The time of each stage is added to ``DIR/timings.json`` and printed.
 

@@ -1,13 +1,15 @@
-"""Running a recipe (``vlocnetpp train --recipe FILE --out DIR``): its datasets, its stages as soon as they can
+"""Running a recipe (``vlocnetpp train --recipe FILE --out DIR``): its datasets and stages as soon as they can
 start, then its export. The file format and each stage's commands: :mod:`vlocnetpp_core.recipe`.
 
-Datasets that are not there yet are rendered side by side, one process per core. Stages run as their own
-processes, scheduled on the machine's cores: a stage starts (in file order) once every stage it takes weights
-from (``init``, ``continue``) has finished and its ``threads`` fit in the cores the running stages leave
-free (one that asks for more than there are starts alone), so a later stage may start beside an earlier one
-that still runs, e.g. ``stl-vo`` beside ``stl-seg`` once ``stl-loc-trunk`` is done. When a stage fails no
-other starts; the running ones finish, then the run stops with the failed stages' logs named. Every
-stage's wall time, the datasets' and the whole run's are added to ``DIR/timings.json`` and printed.
+Every dataset still to render (``vlocnetpp synth``, one core each) and every stage (``vlocnetpp train``, on its
+``threads``) is a job: its own process, scheduled on the machine's cores. The datasets come first, those of the
+earliest stages first (longest first among equals); a stage starts (in file order) once its datasets are
+rendered, every stage it takes weights from (``init``, ``continue``) has finished and its ``threads`` fit in
+the cores the running jobs leave free (one that asks for more than there are starts alone). So a stage may
+start while a later stage's dataset still renders, and a later stage beside an earlier one that still runs,
+e.g. ``stl-vo`` beside ``stl-seg`` once ``stl-loc-trunk`` is done. When a job fails no other starts; the
+running ones finish, then the run stops naming the failed jobs' logs and their last lines. Every job's wall
+time and the whole run's are added to ``DIR/timings.json`` and printed.
 """
 
 from __future__ import annotations
@@ -17,10 +19,10 @@ import os
 import shlex
 import shutil
 import subprocess
+import sys
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
-from dataclasses import dataclass
-from multiprocessing import get_context
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO
 
@@ -28,7 +30,7 @@ from vlocnetpp_core.errors import UserError
 from vlocnetpp_core.recipe import Recipe, Stage, dataset_path, load_recipe, stage_commands
 from vlocnetpp_core.threads import resolve_threads
 
-POLL_S = 1.0  # how often the scheduler looks at its running stages
+POLL_S = 1.0  # how often the scheduler looks at its running jobs
 
 
 def run_recipe(path: str | Path, out: str | Path, cores: int | None = None) -> int:
@@ -42,8 +44,7 @@ def run_recipe(path: str | Path, out: str | Path, cores: int | None = None) -> i
         print(f"[recipe {time.strftime('%H:%M:%S')}] {msg}", flush=True)
 
     t0 = time.monotonic()
-    prepare_datasets(recipe, out, log, cores)
-    run_stages(recipe, out, log, cores)
+    run_jobs(recipe_jobs(recipe, out), out, log, cores)
     if recipe.export:
         from vlocnetpp_core.recipe_export import export_weights
 
@@ -52,67 +53,106 @@ def run_recipe(path: str | Path, out: str | Path, cores: int | None = None) -> i
     return 0
 
 
-def prepare_datasets(recipe: Recipe, out: Path, log, cores: int = 1) -> None:
-    """Render every ``synth`` dataset that is not there yet (``OUT/data/NAME``), up to ``cores`` at a time."""
-    todo = []
+@dataclass
+class Job:
+    """One process of a recipe run: ``commands()`` gives the command lines still to run (in one shell, in
+    order; none: the job is done), called when it starts; ``inputs`` are the jobs that must finish first."""
+
+    name: str  # a stage's name, or "dataset NAME"
+    threads: int
+    commands: Callable[[], list[list[str]]]
+    log_path: Path
+    inputs: set[str] = field(default_factory=set)
+    what: str = ""  # printed when it starts
+
+
+def recipe_jobs(recipe: Recipe, out: Path, python: str = sys.executable) -> list[Job]:
+    """The recipe's jobs in the order they are considered: datasets (those of the earliest stages first), then stages."""
+    first_use = {}
+    for k, stage in enumerate(recipe.stages):
+        for name in stage_datasets(stage):
+            first_use.setdefault(name, k)
+    renders = []
     for name, spec in recipe.datasets.items():
         target = dataset_path(recipe, name, out)
         if "path" in spec:
             if not target.is_dir():
                 raise UserError(f"{recipe.path}: dataset '{name}': {target} not found")
-        elif not target.is_dir():
-            todo.append((name, target, _synth_args(spec["synth"])))
-    if not todo:
-        return
-    t0 = time.monotonic()
-    todo.sort(key=lambda item: -(item[2]["train_loops"] + item[2]["test_loops"]) * item[2]["frames_per_loop"])  # longest first
-    with ProcessPoolExecutor(min(cores, len(todo)), mp_context=get_context("spawn")) as pool:
-        started = {pool.submit(_render, target, args): (name, time.monotonic()) for name, target, args in todo}
-        for done in as_completed(started):
-            done.result()  # a UserError (bad synth keys) surfaces here, with its message
-            name, start = started[done]
-            log(f"dataset {name}: rendered in {time.monotonic() - start:.0f} s")
-    record_time(out, "datasets", time.monotonic() - t0, log)
+            continue
+        args = synth_args(spec.get("synth"), f"{recipe.path}: dataset '{name}'")
+        frames = (args["loops"] + args["test_loops"]) * args["frames_per_loop"]
+        renders.append((first_use.get(name, len(recipe.stages)), -frames, Job(
+            f"dataset {name}", 1, lambda target=target, args=args: [] if target.is_dir() else [synth_command(target, args, python)],
+            out / "data" / f"{name}.log", what=f"rendering {frames} frames into {target}")))
+    jobs = [job for *_, job in sorted(renders, key=lambda r: r[:2])]
+    rendered = {job.name for job in jobs}
+    for stage in recipe.stages:
+        inputs = set(stage.init) | ({stage.continues} if stage.continues else set())
+        inputs |= {f"dataset {name}" for name in stage_datasets(stage)} & rendered
+        threads = stage_threads(stage)
+        jobs.append(Job(stage.name, threads, lambda stage=stage: _stage_commands(stage, recipe, out, python), out / f"{stage.name}.log",
+                        inputs, f"{stage.stage} to step {stage.steps} on {threads} thread{'s' * (threads > 1)}"))
+    return jobs
 
 
-def _synth_args(synth: dict) -> dict:
-    """A dataset's ``synth`` keys as ``render_dataset`` arguments (the recipe's defaults filled in)."""
-    return {"scene": synth.get("scene", "campus"), "seed": int(synth.get("seed", 0)), "train_loops": int(synth.get("loops", 4)),
-            "test_loops": int(synth.get("test_loops", 2)), "frames_per_loop": int(synth.get("frames_per_loop", 175)),
-            "size": tuple(synth.get("size", (320, 180))), "lane_wander": float(synth.get("lane_wander", 0.0))}
+def stage_datasets(stage: Stage) -> list[str]:
+    """The datasets a stage trains and validates on (its ``data`` and ``val_data``)."""
+    return [stage.flags[key] for key in ("data", "val_data") if key in stage.flags]
 
 
-def _render(target: Path, args: dict) -> None:
-    from vlocnetpp_core.synth import render_dataset
+SYNTH_KEYS = ("scene", "seed", "loops", "test_loops", "frames_per_loop", "size", "lane_wander")
 
-    render_dataset(target, **args, progress=False)
+
+def synth_args(synth: dict | None, where: str) -> dict:
+    """A dataset's ``synth`` keys with the recipe's defaults filled in; ``UserError`` naming ``where`` for a missing
+    ``synth``, an unknown key or a bad value."""
+    if not isinstance(synth, dict):
+        raise UserError(f"{where}: a dataset is {{synth: {{...}}}} (rendered) or {{path: DIR}} (an existing folder)")
+    unknown = sorted(set(synth) - set(SYNTH_KEYS))
+    if unknown:
+        raise UserError(f"{where}: unknown synth key {', '.join(map(repr, unknown))} (known: {', '.join(SYNTH_KEYS)})")
+    try:
+        return {"scene": str(synth.get("scene", "campus")), "seed": int(synth.get("seed", 0)), "loops": int(synth.get("loops", 4)),
+                "test_loops": int(synth.get("test_loops", 2)), "frames_per_loop": int(synth.get("frames_per_loop", 175)),
+                "size": "x".join(str(int(v)) for v in synth.get("size", (320, 180))), "lane_wander": float(synth.get("lane_wander", 0.0))}
+    except (TypeError, ValueError) as err:
+        raise UserError(f"{where}: bad synth value ({err})") from None
+
+
+def synth_command(target: Path, args: dict, python: str = sys.executable) -> list[str]:
+    """The ``vlocnetpp synth`` command line that renders a dataset of ``synth_args`` into ``target``."""
+    flags = [f"--{key.replace('_', '-')}={value}" for key, value in args.items()]
+    return [python, "-m", "vlocnetpp_core.cli", "synth", str(target), *flags, "--no-progress"]
+
+
+def _stage_commands(stage: Stage, recipe: Recipe, out: Path, python: str) -> list[list[str]]:
+    continue_run(stage, out)
+    return stage_commands(stage, recipe, out, python)
 
 
 @dataclass
 class _Running:
-    stage: Stage
-    threads: int
+    job: Job
     proc: subprocess.Popen
     logf: IO
     start: float
 
 
-def run_stages(recipe: Recipe, out: Path, log, cores: int) -> None:
-    """Every stage, each as soon as its inputs are finished and its threads fit (module docstring); raises
-    :class:`UserError` naming the logs of the stages that failed, once the running ones have ended."""
-    waiting, running, finished, failed = list(recipe.stages), [], set(), []
+def run_jobs(jobs: list[Job], out: Path, log, cores: int) -> None:
+    """Every job, each as soon as its inputs are finished and its threads fit (module docstring); raises
+    :class:`UserError` naming the logs of the jobs that failed, once the running ones have ended."""
+    waiting, running, finished, failed = list(jobs), [], set(), []
     while waiting or running:
-        free = cores - sum(r.threads for r in running)
-        for stage in list(waiting) if not failed else []:
-            threads = stage_threads(stage)
-            if _inputs(stage) <= finished and (threads <= free or not running):
-                waiting.remove(stage)
-                started = _start(stage, threads, recipe, out, log)
+        free = cores - sum(r.job.threads for r in running)
+        for job in list(waiting) if not failed else []:
+            if job.inputs <= finished and (job.threads <= free or not running):
+                waiting.remove(job)
+                started = _start(job, log)
                 if started is None:
-                    finished.add(stage.name)  # nothing left to train
+                    finished.add(job.name)  # nothing left to do
                 else:
                     running.append(started)
-                    free -= threads
+                    free -= job.threads
         if failed and not running:
             break
         time.sleep(POLL_S if running else 0)
@@ -120,15 +160,20 @@ def run_stages(recipe: Recipe, out: Path, log, cores: int) -> None:
             running.remove(run)
             run.logf.close()
             if run.proc.returncode == 0:
-                finished.add(run.stage.name)
-                record_time(out, run.stage.name, time.monotonic() - run.start, log)
+                finished.add(run.job.name)
+                record_time(out, run.job.name, time.monotonic() - run.start, log)
             else:
-                failed.append(run.stage.name)
-                log(f"stage {run.stage.name} failed (exit {run.proc.returncode}); no other stage starts"
-                    + (f", waiting for {', '.join(r.stage.name for r in running)}" if running else ""))
+                failed.append(run.job)
+                log(f"{run.job.name} failed (exit {run.proc.returncode}); nothing else starts"
+                    + (f", waiting for {', '.join(r.job.name for r in running)}" if running else ""))
     if failed:
-        raise UserError(f"stage {', '.join(failed)} failed; see {', '.join(str(out / f'{n}.log') for n in failed)} "
-                        "(run the recipe again to resume)")
+        raise UserError("; ".join(f"{job.name} failed: {_last_line(job.log_path)} (log {job.log_path})" for job in failed)
+                        + " (run the recipe again to resume)")
+
+
+def _last_line(path: Path) -> str:
+    lines = [line.strip() for line in path.read_text(errors="replace").splitlines() if line.strip()] if path.is_file() else []
+    return lines[-1] if lines else "no output"
 
 
 def stage_threads(stage: Stage) -> int:
@@ -136,22 +181,17 @@ def stage_threads(stage: Stage) -> int:
     return resolve_threads(int(stage.flags.get("threads", os.cpu_count() or 1)))
 
 
-def _inputs(stage: Stage) -> set[str]:
-    return set(stage.init) | ({stage.continues} if stage.continues else set())
-
-
-def _start(stage: Stage, threads: int, recipe: Recipe, out: Path, log) -> _Running | None:
-    """Launch the commands still to run for ``stage`` (one shell, in order); None when there are none."""
-    continue_run(stage, out)
-    commands = stage_commands(stage, recipe, out)
+def _start(job: Job, log) -> _Running | None:
+    """Launch the commands still to run for ``job`` (one shell, in order); None when there are none."""
+    commands = job.commands()
     if not commands:
         return None
-    logf = open(out / f"{stage.name}.log", "a")
-    log(f"stage {stage.name}: {stage.stage} to step {stage.steps} on {threads} thread{'s' * (threads > 1)} "
-        f"(log {out / f'{stage.name}.log'})")
+    job.log_path.parent.mkdir(parents=True, exist_ok=True)
+    logf = open(job.log_path, "a")
+    log(f"start {job.name}: {job.what} (log {job.log_path})")
     script = " && ".join(shlex.join(c) for c in commands)
     proc = subprocess.Popen(["bash", "-c", script], stdout=logf, stderr=subprocess.STDOUT)
-    return _Running(stage, threads, proc, logf, time.monotonic())
+    return _Running(job, proc, logf, time.monotonic())
 
 
 def continue_run(stage: Stage, out: Path) -> None:
