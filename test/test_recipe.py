@@ -3,6 +3,11 @@
 from __future__ import annotations
 
 import json
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
 
 import pytest
 import yaml
@@ -201,3 +206,38 @@ def test_the_shipped_trunk_config_is_lite_with_the_direct_pose_head():
     trunk = load_model_config(str(REPO / "config" / "recipes" / "lite_trunk.yaml")).to_dict()
     assert {k for k in lite if lite[k] != trunk[k]} == {"name", "global_pose_anchors", "global_rotation_anchors"}
     assert trunk["global_pose_anchors"] == trunk["global_rotation_anchors"] == 0
+
+
+def test_sigterm_stops_every_job_and_keeps_their_time(tmp_path):
+    """SIGTERM to a running recipe interrupts its stage (the training process too, not only its shell), exits 130
+    and adds the time the stage ran to timings.json, so that a resumed run sums its parts."""
+    from conftest import REPO
+
+    stages = [{"name": "vo", "stage": "stl-vo", "schedule": [{"steps": 100000, "lr": 1e-3}], "threads": 1}]
+    path, out = _recipe(tmp_path, stages=stages, export=None), tmp_path / "run"
+    proc = subprocess.Popen([sys.executable, "-m", "vlocnetpp_core.cli", "train", "--recipe", str(path), "--out", str(out)],
+                            cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        printed = []
+        while not any("start vo:" in line for line in printed):
+            line = proc.stdout.readline()
+            assert line, "".join(printed)
+            printed.append(line)
+        time.sleep(3)  # the stage is training (or still starting: either way it must stop)
+        proc.send_signal(signal.SIGTERM)
+        rest, _ = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130 and "vo interrupted" in rest and "Traceback" not in rest
+    still = [p for p in Path("/proc").iterdir() if p.name.isdigit() and str(out) in _cmdline(p)]
+    assert not still, [_cmdline(p) for p in still]
+    timings = json.loads((out / "timings.json").read_text())
+    assert timings["vo"] >= 3 and timings["recipe (end to end)"] >= timings["vo"]
+
+
+def _cmdline(proc_dir: Path) -> str:
+    try:
+        return (proc_dir / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+    except OSError:  # the process ended meanwhile
+        return ""

@@ -8,8 +8,9 @@ rendered, every stage it takes weights from (``init``, ``continue``) has finishe
 the cores the running jobs leave free (one that asks for more than there are starts alone). So a stage may
 start while a later stage's dataset still renders, and a later stage beside an earlier one that still runs,
 e.g. ``stl-vo`` beside ``stl-seg`` once ``stl-loc-trunk`` is done. When a job fails no other starts; the
-running ones finish, then the run stops naming the failed jobs' logs and their last lines. Every job's wall
-time and the whole run's are added to ``DIR/timings.json`` and printed.
+running ones finish, then the run stops naming the failed jobs' logs and their last lines. Ctrl-C or SIGTERM
+interrupts every running job too. Every job's wall time (an interrupted one's up to the interruption) and the
+whole run's are added to ``DIR/timings.json`` and printed, so a resumed run sums its parts.
 """
 
 from __future__ import annotations
@@ -18,15 +19,18 @@ import json
 import os
 import shlex
 import shutil
+import signal
 import subprocess
 import sys
 import time
 from collections.abc import Callable
+from contextlib import suppress
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO
 
 from vlocnetpp_core.errors import UserError
+from vlocnetpp_core.interrupts import sigterm_as_interrupt
 from vlocnetpp_core.recipe import Recipe, Stage, dataset_path, load_recipe, stage_commands
 from vlocnetpp_core.threads import resolve_threads
 
@@ -44,12 +48,15 @@ def run_recipe(path: str | Path, out: str | Path, cores: int | None = None) -> i
         print(f"[recipe {time.strftime('%H:%M:%S')}] {msg}", flush=True)
 
     t0 = time.monotonic()
-    run_jobs(recipe_jobs(recipe, out), out, log, cores)
-    if recipe.export:
-        from vlocnetpp_core.recipe_export import export_weights
+    try:
+        with sigterm_as_interrupt():
+            run_jobs(recipe_jobs(recipe, out), out, log, cores)
+            if recipe.export:
+                from vlocnetpp_core.recipe_export import export_weights
 
-        log(f"export: {export_weights(recipe, out)}")
-    record_time(out, "recipe (end to end)", time.monotonic() - t0, log)
+                log(f"export: {export_weights(recipe, out)}")
+    finally:
+        record_time(out, "recipe (end to end)", time.monotonic() - t0, log)
     return 0
 
 
@@ -142,6 +149,17 @@ def run_jobs(jobs: list[Job], out: Path, log, cores: int) -> None:
     """Every job, each as soon as its inputs are finished and its threads fit (module docstring); raises
     :class:`UserError` naming the logs of the jobs that failed, once the running ones have ended."""
     waiting, running, finished, failed = list(jobs), [], set(), []
+    try:
+        _schedule(waiting, running, finished, failed, out, log, cores)
+    except BaseException:  # Ctrl-C or SIGTERM (sigterm_as_interrupt): no job outlives the recipe
+        _interrupt(running, out, log)
+        raise
+    if failed:
+        raise UserError("; ".join(f"{job.name} failed: {_last_line(job.log_path)} (log {job.log_path})" for job in failed)
+                        + " (run the recipe again to resume)")
+
+
+def _schedule(waiting: list[Job], running: list[_Running], finished: set[str], failed: list[Job], out: Path, log, cores: int) -> None:
     while waiting or running:
         free = cores - sum(r.job.threads for r in running)
         for job in list(waiting) if not failed else []:
@@ -166,9 +184,25 @@ def run_jobs(jobs: list[Job], out: Path, log, cores: int) -> None:
                 failed.append(run.job)
                 log(f"{run.job.name} failed (exit {run.proc.returncode}); nothing else starts"
                     + (f", waiting for {', '.join(r.job.name for r in running)}" if running else ""))
-    if failed:
-        raise UserError("; ".join(f"{job.name} failed: {_last_line(job.log_path)} (log {job.log_path})" for job in failed)
-                        + " (run the recipe again to resume)")
+
+
+def _interrupt(running: list[_Running], out: Path, log, grace_s: float = 60.0) -> None:
+    """Ctrl-C every running job (its whole process group), SIGKILL those still there after ``grace_s``, and add the
+    time they ran to ``timings.json`` (a stage resumes from its last checkpoint when the recipe runs again)."""
+    for run in running:
+        with suppress(ProcessLookupError):
+            os.killpg(run.proc.pid, signal.SIGINT)
+    deadline = time.monotonic() + grace_s
+    for run in running:
+        try:
+            run.proc.wait(max(0.0, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            with suppress(ProcessLookupError):
+                os.killpg(run.proc.pid, signal.SIGKILL)
+            run.proc.wait()
+        run.logf.close()
+        log(f"{run.job.name} interrupted")
+        record_time(out, run.job.name, time.monotonic() - run.start, log)
 
 
 def _last_line(path: Path) -> str:
@@ -190,7 +224,8 @@ def _start(job: Job, log) -> _Running | None:
     logf = open(job.log_path, "a")
     log(f"start {job.name}: {job.what} (log {job.log_path})")
     script = " && ".join(shlex.join(c) for c in commands)
-    proc = subprocess.Popen(["bash", "-c", script], stdout=logf, stderr=subprocess.STDOUT)
+    # its own process group, so that an interrupted recipe stops the job's shell and the command it runs alike
+    proc = subprocess.Popen(["bash", "-c", script], stdout=logf, stderr=subprocess.STDOUT, start_new_session=True)
     return _Running(job, proc, logf, time.monotonic())
 
 

@@ -36,7 +36,7 @@ from nav_msgs.msg import Odometry
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
 from vlocnetpp_core.bag import messages, topics
-from vlocnetpp_core.bag.bagfile import BagReader, BagWriter, sigterm_as_interrupt
+from vlocnetpp_core.bag.bagfile import BagReader, BagWriter
 from vlocnetpp_core.bag.replay import (
     OUTPUT_TYPES,
     ReplaySummary,
@@ -46,6 +46,7 @@ from vlocnetpp_core.bag.replay import (
     groups_by_log_time,
 )
 from vlocnetpp_core.errors import DataError, UserError
+from vlocnetpp_core.interrupts import sigterm_as_interrupt
 from vlocnetpp_ros.dds_client import RECORD as _RECORD
 from vlocnetpp_ros.dds_client import RELIABLE as _RELIABLE
 from vlocnetpp_ros.dds_client import DdsClient

@@ -17,10 +17,8 @@ from __future__ import annotations
 import os
 import re
 import shutil
-import signal
-import threading
 from collections.abc import Iterable, Iterator
-from contextlib import contextmanager, suppress
+from contextlib import suppress
 from pathlib import Path
 from typing import Any
 
@@ -31,23 +29,6 @@ from vlocnetpp_core.bag import messages
 from vlocnetpp_core.errors import DataError, UserError
 
 ROSBAG2_VERSION = 9
-
-
-@contextmanager
-def sigterm_as_interrupt() -> Iterator[None]:
-    """Within the block SIGTERM raises ``KeyboardInterrupt`` (so cleanup runs as on Ctrl-C). Main thread only."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def handler(signum, frame):
-        raise KeyboardInterrupt(f"signal {signum}")
-
-    previous = signal.signal(signal.SIGTERM, handler)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous)
 
 
 def _pid_alive(pid: int) -> bool:

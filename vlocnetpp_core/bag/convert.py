@@ -47,7 +47,7 @@ import numpy as np
 
 from vlocnetpp_core import geometry
 from vlocnetpp_core.bag import messages
-from vlocnetpp_core.bag.bagfile import BagWriter, sigterm_as_interrupt
+from vlocnetpp_core.bag.bagfile import BagWriter
 from vlocnetpp_core.bag.topics import (
     CAMERA_INFO_TOPIC,
     COMPRESSED_TOPIC,
@@ -61,6 +61,7 @@ from vlocnetpp_core.bag.topics import (
 )
 from vlocnetpp_core.data.sample import DatasetIndex, Frame, sequence_stamps
 from vlocnetpp_core.errors import DataError, UserError
+from vlocnetpp_core.interrupts import sigterm_as_interrupt
 
 CAMERA_FRAME = "camera"
 DEFAULT_RATE_HZ = {"deeploc": 20.0, "7scenes": 30.0}

@@ -34,7 +34,7 @@ import numpy as np
 
 from vlocnetpp_core import preprocess
 from vlocnetpp_core.bag import messages
-from vlocnetpp_core.bag.bagfile import BagReader, sigterm_as_interrupt
+from vlocnetpp_core.bag.bagfile import BagReader
 from vlocnetpp_core.bag.extract_plan import Plan, PlannedFrame, Selection, match_nearest, plan_frames
 from vlocnetpp_core.bag.extract_scan import (
     DEFAULT_DEPTH_TOLERANCE_S,
@@ -54,6 +54,7 @@ from vlocnetpp_core.bag.pose_source import PoseChain
 from vlocnetpp_core.bag.topics import DEFAULT_MAX_GAP_S, DEPTH_TOPIC, GROUND_TRUTH_TOPIC
 from vlocnetpp_core.errors import UserError
 from vlocnetpp_core.extrinsics import CameraExtrinsics
+from vlocnetpp_core.interrupts import sigterm_as_interrupt
 from vlocnetpp_core.intrinsics import Intrinsics
 
 __all__ = ["ExtractOptions", "ExtractSummary", "extract", "add_arguments", "run"]

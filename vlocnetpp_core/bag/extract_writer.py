@@ -13,7 +13,7 @@ Layout (what :mod:`vlocnetpp_core.data.deeploc` reads; no labels)::
 :func:`atomic_output_dir` gives a hidden temporary folder next to ``OUT``
 (``.OUT.partial-<pid>``, the naming of :mod:`vlocnetpp_core.bag.bagfile`, whose stale-folder cleanup
 it shares) that is renamed to ``OUT`` only when the block ends without an error; an error, Ctrl-C
-or SIGTERM (with :func:`~vlocnetpp_core.bag.bagfile.sigterm_as_interrupt`) deletes it.
+or SIGTERM (with :func:`~vlocnetpp_core.interrupts.sigterm_as_interrupt`) deletes it.
 """
 
 from __future__ import annotations

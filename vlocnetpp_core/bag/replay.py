@@ -39,7 +39,7 @@ from pathlib import Path
 from typing import Any
 
 from vlocnetpp_core.bag import messages
-from vlocnetpp_core.bag.bagfile import BagReader, BagWriter, sigterm_as_interrupt
+from vlocnetpp_core.bag.bagfile import BagReader, BagWriter
 from vlocnetpp_core.bag.topics import (
     CAMERA_INFO_TOPIC,
     COMPRESSED_TOPIC,
@@ -55,6 +55,7 @@ from vlocnetpp_core.bag.topics import (
     SEMANTIC_TOPIC,
 )
 from vlocnetpp_core.errors import DataError, UserError
+from vlocnetpp_core.interrupts import sigterm_as_interrupt
 from vlocnetpp_core.programs import program_command
 
 OUTPUT_TYPES = {POSE_TOPIC: messages.POSE_STAMPED, POSE_WITH_COVARIANCE_TOPIC: messages.POSE_WITH_COVARIANCE_STAMPED,
