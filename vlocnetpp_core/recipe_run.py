@@ -15,6 +15,7 @@ whole run's are added to ``DIR/timings.json`` and printed, so a resumed run sums
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import shlex
@@ -111,19 +112,26 @@ SYNTH_KEYS = ("scene", "seed", "loops", "test_loops", "frames_per_loop", "size",
 
 
 def synth_args(synth: dict | None, where: str) -> dict:
-    """A dataset's ``synth`` keys with the recipe's defaults filled in; ``UserError`` naming ``where`` for a missing
-    ``synth``, an unknown key or a bad value."""
+    """A dataset's ``synth`` keys with ``vlocnetpp synth``'s defaults filled in; ``UserError`` naming ``where`` for a
+    missing ``synth``, an unknown key or a bad value."""
+    from vlocnetpp_core.synth.cli import add_arguments
+
     if not isinstance(synth, dict):
         raise UserError(f"{where}: a dataset is {{synth: {{...}}}} (rendered) or {{path: DIR}} (an existing folder)")
     unknown = sorted(set(synth) - set(SYNTH_KEYS))
     if unknown:
         raise UserError(f"{where}: unknown synth key {', '.join(map(repr, unknown))} (known: {', '.join(SYNTH_KEYS)})")
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    args = {}
     try:
-        return {"scene": str(synth.get("scene", "campus")), "seed": int(synth.get("seed", 0)), "loops": int(synth.get("loops", 4)),
-                "test_loops": int(synth.get("test_loops", 2)), "frames_per_loop": int(synth.get("frames_per_loop", 175)),
-                "size": "x".join(str(int(v)) for v in synth.get("size", (320, 180))), "lane_wander": float(synth.get("lane_wander", 0.0))}
+        for key in SYNTH_KEYS:
+            default = parser.get_default(key)
+            value = synth.get(key, default)
+            args[key] = "x".join(str(int(v)) for v in value) if key == "size" else type(default)(value)
     except (TypeError, ValueError) as err:
         raise UserError(f"{where}: bad synth value ({err})") from None
+    return args
 
 
 def synth_command(target: Path, args: dict, python: str = sys.executable) -> list[str]:
@@ -150,40 +158,36 @@ def run_jobs(jobs: list[Job], out: Path, log, cores: int) -> None:
     :class:`UserError` naming the logs of the jobs that failed, once the running ones have ended."""
     waiting, running, finished, failed = list(jobs), [], set(), []
     try:
-        _schedule(waiting, running, finished, failed, out, log, cores)
+        while waiting or running:
+            free = cores - sum(r.job.threads for r in running)
+            for job in list(waiting) if not failed else []:
+                if job.inputs <= finished and (job.threads <= free or not running):
+                    waiting.remove(job)
+                    started = _start(job, log)
+                    if started is None:
+                        finished.add(job.name)  # nothing left to do
+                    else:
+                        running.append(started)
+                        free -= job.threads
+            if failed and not running:
+                break
+            time.sleep(POLL_S if running else 0)
+            for run in [r for r in running if r.proc.poll() is not None]:
+                running.remove(run)
+                run.logf.close()
+                if run.proc.returncode == 0:
+                    finished.add(run.job.name)
+                    record_time(out, run.job.name, time.monotonic() - run.start, log)
+                else:
+                    failed.append(run.job)
+                    log(f"{run.job.name} failed (exit {run.proc.returncode}); nothing else starts"
+                        + (f", waiting for {', '.join(r.job.name for r in running)}" if running else ""))
     except BaseException:  # Ctrl-C or SIGTERM (sigterm_as_interrupt): no job outlives the recipe
         _interrupt(running, out, log)
         raise
     if failed:
         raise UserError("; ".join(f"{job.name} failed: {_last_line(job.log_path)} (log {job.log_path})" for job in failed)
                         + " (run the recipe again to resume)")
-
-
-def _schedule(waiting: list[Job], running: list[_Running], finished: set[str], failed: list[Job], out: Path, log, cores: int) -> None:
-    while waiting or running:
-        free = cores - sum(r.job.threads for r in running)
-        for job in list(waiting) if not failed else []:
-            if job.inputs <= finished and (job.threads <= free or not running):
-                waiting.remove(job)
-                started = _start(job, log)
-                if started is None:
-                    finished.add(job.name)  # nothing left to do
-                else:
-                    running.append(started)
-                    free -= job.threads
-        if failed and not running:
-            break
-        time.sleep(POLL_S if running else 0)
-        for run in [r for r in running if r.proc.poll() is not None]:
-            running.remove(run)
-            run.logf.close()
-            if run.proc.returncode == 0:
-                finished.add(run.job.name)
-                record_time(out, run.job.name, time.monotonic() - run.start, log)
-            else:
-                failed.append(run.job)
-                log(f"{run.job.name} failed (exit {run.proc.returncode}); nothing else starts"
-                    + (f", waiting for {', '.join(r.job.name for r in running)}" if running else ""))
 
 
 def _interrupt(running: list[_Running], out: Path, log, grace_s: float = 60.0) -> None:
