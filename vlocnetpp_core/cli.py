@@ -12,6 +12,7 @@ import importlib
 import sys
 
 from vlocnetpp_core.errors import UserError
+from vlocnetpp_core.interrupts import sigterm_as_interrupt
 
 # name -> (module, one-line help, aliases)
 COMMANDS: dict[str, tuple[str, str, tuple[str, ...]]] = {
@@ -62,7 +63,8 @@ def main(argv: list[str] | None = None) -> int:
         return 0 if args.command is None else 2
     module = importlib.import_module(args._module)
     try:
-        return int(module.run(args) or 0)
+        with sigterm_as_interrupt():  # SIGTERM stops every command as Ctrl-C does (a stopped recipe sends it to its jobs)
+            return int(module.run(args) or 0)
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130

@@ -191,11 +191,12 @@ def run_jobs(jobs: list[Job], out: Path, log, cores: int) -> None:
 
 
 def _interrupt(running: list[_Running], out: Path, log, grace_s: float = 60.0) -> None:
-    """Ctrl-C every running job (its whole process group), SIGKILL those still there after ``grace_s``, and add the
-    time they ran to ``timings.json`` (a stage resumes from its last checkpoint when the recipe runs again)."""
+    """SIGTERM every running job (its whole process group; not SIGINT, which a recipe started in the background
+    with ``&`` passes on ignored), SIGKILL those still there after ``grace_s``, and add the time they ran to
+    ``timings.json`` (a stage resumes from its last checkpoint when the recipe runs again)."""
     for run in running:
         with suppress(ProcessLookupError):
-            os.killpg(run.proc.pid, signal.SIGINT)
+            os.killpg(run.proc.pid, signal.SIGTERM)
     deadline = time.monotonic() + grace_s
     for run in running:
         try:

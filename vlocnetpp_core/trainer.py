@@ -26,6 +26,7 @@ from vlocnetpp_core.losses import selection_score
 from vlocnetpp_core.lr_schedule import LearningRatePhase
 from vlocnetpp_core.model.assembly import builds_semantic_fusion, frozen_trunk
 from vlocnetpp_core.model.stages import stage_tasks
+from vlocnetpp_core.model.vlocnet import StepOutput
 from vlocnetpp_core.threads import use_threads
 from vlocnetpp_core.train_data import EpochSampler, SeededClips, split_validation, training_clips
 from vlocnetpp_core.train_init import load_inits
@@ -67,6 +68,8 @@ class Trainer:
                 torch.cuda.set_device(self.device)
             dist.init_process_group("nccl" if self.device.type == "cuda" else "gloo")
         use_threads(args.threads)
+        if args.bf16 and self.device.type == "cpu" and not (torch.cpu._is_avx512_bf16_supported() or torch.cpu._is_amx_tile_supported()):
+            self.log("--bf16: this CPU has neither AVX-512 BF16 nor AMX, so bfloat16 autocast runs slower here than float32")
         if args.batch_size % self.world:
             raise UserError(f"--batch-size {args.batch_size} must be divisible by the number of processes ({self.world})")
         self.is_main = self.rank == 0
@@ -131,7 +134,7 @@ class Trainer:
             raise UserError(f"--freeze {','.join(self.frozen)}: nothing of what {args.stage} trains is left to train")
         params += list(self.criterion.parameters())
         self.lr = args.lr if args.lr is not None else DEFAULT_LR[args.stage]
-        self.optimizer = torch.optim.Adam(params, lr=self.lr, betas=(0.9, 0.999), eps=1e-10)
+        self.optimizer = torch.optim.Adam(params, lr=self.lr, betas=(0.9, 0.999), eps=1e-10, fused=True)  # one kernel for all tensors
 
     def _frozen_parts(self) -> tuple[str, ...]:
         """``--freeze``, plus the trunk of one pose stream trained on top of the other's: kept as the first stage learned it
@@ -181,6 +184,25 @@ class Trainer:
         self.log(f"{args.stage}: {len(self.train_clips)} clips (frame strides {','.join(map(str, args.frame_strides))}), "
                  f"{self.sampler.batches_per_epoch} steps/epoch, {self.total} steps, lr {self.lr:g}, batch {args.batch_size}, device {self.device}")
         self.last_save = time.monotonic()
+        try:
+            self._loop(progress)
+        except KeyboardInterrupt:  # Ctrl-C or SIGTERM: keep the steps since the last save
+            if self.is_main and self.step > 0:
+                self.save(False)
+                self.log(f"interrupted at step {self.step}: saved ({self.out / 'last.safetensors'}); --resume continues from there")
+            raise
+        if self.is_main and self.total == 0:  # nothing to train: write the initialised network (e.g. mtl assembled from its stages)
+            self.save(True)
+        if progress is not None:
+            progress.close()
+        if self.distributed:
+            dist.barrier()
+            dist.destroy_process_group()
+        self.log(f"done: {self.out / 'last.safetensors'} (best: {self.out / 'best.safetensors'})")
+
+    def _loop(self, progress) -> None:
+        """Steps from ``self.step`` to ``total``, appending each step's record to ``log.jsonl``."""
+        args = self.args
         with open(self.out / "log.jsonl", "a") if self.is_main else open(os.devnull, "w") as logf:
             while self.step < self.total:
                 epoch, offset = divmod(self.step, self.sampler.batches_per_epoch)
@@ -198,14 +220,6 @@ class Trainer:
                     logf.flush()
                     if self.step >= self.total:
                         break
-        if self.is_main and self.total == 0:  # nothing to train: write the initialised network (e.g. mtl assembled from its stages)
-            self.save(True)
-        if progress is not None:
-            progress.close()
-        if self.distributed:
-            dist.barrier()
-            dist.destroy_process_group()
-        self.log(f"done: {self.out / 'last.safetensors'} (best: {self.out / 'best.safetensors'})")
 
     def train_step(self, batch: dict[str, torch.Tensor], epoch: int) -> dict:
         """One optimiser step on a batch of clips; returns the log record (every loss term, the rate, clips/s)."""
@@ -214,7 +228,9 @@ class Trainer:
         for part in self.frozen:
             getattr(self.model, part).eval()
         batch = {k: v.to(self.device, non_blocking=True) for k, v in batch.items()}
-        loss, parts = self.criterion(forward_stage(self.net, batch, self.args.stage), batch)
+        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.args.bf16):
+            outputs = forward_stage(self.net, batch, self.args.stage)
+        loss, parts = self.criterion([float32_outputs(o) for o in outputs], batch)
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         for group in self.optimizer.param_groups:
@@ -274,6 +290,12 @@ class Trainer:
 
 
 # --------------------------------------------------------------------------- forward and validation
+
+
+def float32_outputs(out: StepOutput) -> StepOutput:
+    """``out`` with its heads' outputs in float32 (an autocast forward gives the segmentation logits and depth in bfloat16)."""
+    heads = {f.name: v.float() for f in dataclasses.fields(out) if isinstance(v := getattr(out, f.name), torch.Tensor)}
+    return dataclasses.replace(out, **heads)
 
 
 def forward_stage(net, batch: dict, stage: str):

@@ -327,10 +327,11 @@ class VLocNetPP(nn.Module):
 
 
 class _Warper:
-    """Warps previous-frame features into the current view; one input-resolution grid, pooled per feature size."""
+    """Warps previous-frame features into the current view; one float32 input-resolution grid, pooled per feature size."""
 
     def __init__(self, depth: torch.Tensor, T_rel: torch.Tensor, K: torch.Tensor):
-        self.grid, self.valid = warp_grid(depth, T_rel.to(depth.dtype), K.to(depth.dtype))
+        with torch.autocast(depth.device.type, enabled=False):  # pixel coordinates in float32, also under autocast
+            self.grid, self.valid = warp_grid(depth.float(), T_rel.float(), K.float())
         self.pooled: dict[tuple[int, int], tuple[torch.Tensor, torch.Tensor]] = {}
 
     def __call__(self, features: torch.Tensor) -> torch.Tensor:

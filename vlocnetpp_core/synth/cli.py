@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 import argparse
-import signal
-import threading
+
+from vlocnetpp_core.interrupts import sigterm_as_interrupt
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -37,24 +37,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
-def _terminate(signum, frame):  # SIGTERM unwinds like Ctrl-C, so the partial output is removed
-    raise KeyboardInterrupt
-
-
 def run(args: argparse.Namespace) -> int:
     from vlocnetpp_core.synth.writer import render_dataset
 
-    previous = signal.signal(signal.SIGTERM, _terminate) if threading.current_thread() is threading.main_thread() else None
-    try:
+    with sigterm_as_interrupt():  # SIGTERM unwinds like Ctrl-C, so the partial output is removed
         s = render_dataset(
             args.out, scene=args.scene, seed=args.seed, train_loops=args.loops, test_loops=args.test_loops,
             frames_per_loop=args.frames_per_loop, size=args.size, force=args.force, progress=not args.no_progress,
             frame_interval=args.frame_interval, test_lane_offset=args.test_lane_offset,
             lane_wander=args.lane_wander,
         )
-    finally:
-        if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
     w, h = s["size"]
     print(f"wrote {s['out']}: {args.loops} train + {args.test_loops} test loops, {s['frames']} frames at {w}x{h} "
           f"(scene {s['scene']}, seed {s['seed']}) in {s['seconds']:.1f} s, rendering {s['render_fps']:.1f} frames/s")
