@@ -18,8 +18,8 @@ from vlocnetpp_core.classes import NUM_CLASSES, colorize
 from vlocnetpp_core.data.pfm import read_pfm
 from vlocnetpp_core.errors import UserError
 from vlocnetpp_core.synth import Campus, default_intrinsics, plan_visit, render_dataset, render_frame
-from vlocnetpp_core.synth.campus import BUILDING, GRASS, LANES, ROAD, SIDEWALK, SKY
 from vlocnetpp_core.synth.drive import MAX_LANE_OFFSET_M
+from vlocnetpp_core.synth.layout import BUILDING, GRASS, LANES, ROAD, SIDEWALK, SKY
 from vlocnetpp_core.synth.prims import BOX
 
 SMALL = dict(train_loops=2, test_loops=1, frames_per_loop=5, size=(96, 54), progress=False)

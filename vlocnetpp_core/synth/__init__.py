@@ -7,7 +7,9 @@
   :class:`DynamicObject` s present; :func:`plan_visit` gives the poses, lighting and moving
   objects of one loop.
 
-Modules: ``campus`` (layout), ``textures`` / ``ground`` (appearance), ``prims`` (geometry),
+Modules: ``layout`` (dimensions, class ids), ``campus`` (the scene: roads, buildings, landmarks,
+vegetation), ``campus_furniture`` and ``campus_ground`` (its street furniture and ground colour),
+``textures`` / ``ground`` (appearance), ``prims`` (geometry),
 ``route`` (closed paths), ``lighting``, ``render`` (ray casting), ``drive`` (visits),
 ``preview`` and ``writer``.
 """

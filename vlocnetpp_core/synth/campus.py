@@ -24,28 +24,33 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from vlocnetpp_core.classes import CLASS_NAMES
 from vlocnetpp_core.synth import textures as tx
+from vlocnetpp_core.synth.campus_furniture import StreetFurniture
+from vlocnetpp_core.synth.campus_ground import GroundColour
 from vlocnetpp_core.synth.ground import RES, GroundMap
+from vlocnetpp_core.synth.layout import (
+    BACKGROUND,
+    BUILDING,
+    CAR_PAINTS,
+    CAR_SIZE,
+    DEPTH_M,
+    DYNAMIC,
+    GRASS,
+    HILLS_MAX_M,
+    OTHER,
+    PERSON_SIZE,
+    POLE,
+    ROAD,
+    ROAD_HALF,
+    SHIRTS,
+    SIDEWALK,
+    SIDEWALK_EDGE,
+    VEGETATION,
+    WIDTH_M,
+)
 from vlocnetpp_core.synth.lighting import Lighting, sky_color
-from vlocnetpp_core.synth.prims import BOX, ELLIPSOID, Prims, PrimsBuilder
+from vlocnetpp_core.synth.prims import Prims, PrimsBuilder
 from vlocnetpp_core.synth.route import rounded_rectangle
-
-# class ids, in the order of vlocnetpp_core.classes.CLASS_NAMES
-BACKGROUND, SKY, ROAD, SIDEWALK, GRASS, VEGETATION, BUILDING, POLE, DYNAMIC, OTHER = range(10)
-assert CLASS_NAMES[BUILDING] == "Building" and CLASS_NAMES[OTHER] == "Other" and len(CLASS_NAMES) == 10
-
-WIDTH_M, DEPTH_M = 100.0, 120.0  # campus extent (x, y)
-ROAD_HALF = 3.0  # road half-width
-SIDEWALK_EDGE = 5.5  # outer edge of a sidewalk from the road centreline
-LANES = {"right lane": 1.5, "left lane": -1.5, "right sidewalk": 4.25, "left sidewalk": -4.25}
-HILLS_RADIUS = 320.0
-HILLS_MAX_M = 38.0
-
-CAR_SIZE = (4.4, 1.8, 1.5)  # length, width, height
-PERSON_SIZE = (0.5, 0.34, 1.75)
-CAR_PAINTS = (0xB03A2E, 0x1F4E79, 0xD5D8DC, 0x1C1C1C, 0x7D8C2F, 0xE3B23C, 0x6C3483, 0x5D6D7E)
-SHIRTS = (0xC0392B, 0x2471A3, 0x27AE60, 0xF4D03F, 0x6E2C00, 0xECF0F1, 0x17202A, 0xAF7AC5)
 
 
 @functools.lru_cache(maxsize=2)
@@ -82,7 +87,7 @@ STYLES = {
 }
 
 
-class Campus:
+class Campus(StreetFurniture, GroundColour):
     """Everything static about one scene. Build once, render many frames from it.
 
     Attributes: ``prims`` (static geometry), ``ground`` (:class:`GroundMap`), ``atlas``
@@ -383,132 +388,6 @@ class Campus:
     def _free_along(self, c: np.ndarray, d: np.ndarray, length: float) -> bool:
         return all(self._free(float(p[0]), float(p[1]), 0.45, margin=0.2) for p in (c + d * f * length / 2 for f in (-1, -0.5, 0.5, 1)))
 
-    # ================================================================= furniture
-    def _place_furniture(self, rng: np.random.Generator) -> None:
-        """Street furniture: lamps, signs, benches and bins, fences, bollards and bike racks. The order of the
-        calls (and of their texture draws from ``rng``) defines the scene: keep it."""
-        X0, X1, Y0, Y1, Ym = self.X0, self.X1, self.Y0, self.Y1, self.Ym
-        strips = {
-            "pole": self._atlas.add(tx.metal_strip(rng, 0.09, 6.0, 0x4A4F55)),
-            "thin": self._atlas.add(tx.metal_strip(rng, 0.08, 3.0, 0x8C9196, bands=False)),
-            "bollard": self._atlas.add(tx.metal_strip(rng, 0.1, 1.0, 0x3C3F44, bands=True)),
-            "grey": self._cap(0x4A4F55),
-            "head": self._atlas.add(tx.panel_strip(rng, 0.8, 0.3, 0.2, [0x3A3F45])),
-        }
-        sides = [((X0, Y0), (X1, Y0)), ((X1, Y0), (X1, Y1)), ((X1, Y1), (X0, Y1)), ((X0, Y1), (X0, Y0)), ((X0, Ym), (X1, Ym))]
-        self._place_lamps(sides, strips)
-        self._place_signs(rng, strips)
-        self._place_benches(rng, sides)
-        self._place_fences(rng)
-        self._place_bollards_and_racks(strips)
-
-    def _place_lamps(self, sides: list, strips: dict) -> None:
-        """Street lamps every 20 m along the roads, alternating sides (repetitive on purpose)."""
-        b = self._b
-        for i, ((ax, ay), (bx, by)) in enumerate(sides):
-            d = np.array([bx - ax, by - ay])
-            n_len = float(np.linalg.norm(d))
-            d /= n_len
-            nrm = np.array([-d[1], d[0]])
-            for k, s in enumerate(np.arange(10.0 + 3 * i, n_len - 9.0, 20.0)):
-                side = 1 if (k + i) % 2 == 0 else -1
-                p = np.array([ax, ay]) + d * s + nrm * 6.4 * side
-                if not self._free(float(p[0]), float(p[1]), 0.1, margin=0.3):
-                    continue
-                b.cylinder(float(p[0]), float(p[1]), 0.09, 0.0, 5.6, POLE, strips["pole"], strips["grey"])
-                h = p - nrm * 0.45 * side
-                b.box(float(h[0]), float(h[1]), math.atan2(nrm[1], nrm[0]), 0.8, 0.3, 5.45, 5.65, POLE, strips["head"], strips["grey"])
-                self._occupy(float(p[0]), float(p[1]), 0.0, 0.5, 0.5)
-
-    def _place_signs(self, rng: np.random.Generator, strips: dict) -> None:
-        """Traffic signs (pole + panel) at the junctions and entrances."""
-        X0, X1, Y0, Y1, Ym = self.X0, self.X1, self.Y0, self.Y1, self.Ym
-        sign_colors = [[0x1F5FAF, 0xFFFFFF], [0xC0392B, 0xFFFFFF, 0xC0392B], [0xF1C40F, 0x1C1C1C], [0xFFFFFF, 0x1F5FAF, 0xFFFFFF]]
-        sign_strips = [self._atlas.add(tx.panel_strip(rng, 0.75, 0.06, 0.75, c)) for c in sign_colors]
-        spots = [(X0, Ym, 1, 1), (X1, Ym, -1, -1), (self.Xs, Y0, 1, -1), (X1, self.Ye, 1, -1), (X0, Y0, 1, 1), (X1, Y1, -1, -1)]
-        for k, (x, y, sx, sy) in enumerate(spots):
-            px, py = x + sx * 6.6, y + sy * 6.6
-            if not self._free(px, py, 0.1, margin=0.3):
-                continue
-            self._b.cylinder(px, py, 0.045, 0.0, 2.75, POLE, strips["thin"], strips["grey"])
-            yaw = float(rng.uniform(0, math.pi))
-            self._b.box(px + 0.08 * math.cos(yaw + math.pi / 2), py + 0.08 * math.sin(yaw + math.pi / 2), yaw, 0.75, 0.06, 1.95, 2.7, OTHER,
-                        sign_strips[k % len(sign_strips)], self._cap(0x9A9A9A))
-            self._occupy(px, py, 0.0, 1.0, 1.0)
-
-    def _place_benches(self, rng: np.random.Generator, sides: list) -> None:
-        """Benches (seat + back), some with a bin beside them, along the sidewalks."""
-        b = self._b
-        bench = self._atlas.add(tx.panel_strip(rng, 1.8, 0.6, 0.5, [0x8B5A2B, 0x6E4420]))
-        back = self._atlas.add(tx.panel_strip(rng, 1.8, 0.08, 0.45, [0x8B5A2B, 0x6E4420, 0x8B5A2B]))
-        bin_strip = self._atlas.add(tx.metal_strip(rng, 0.28, 1.0, 0x2F5D50, bands=True))
-        for (ax, ay), (bx, by) in sides:
-            d = np.array([bx - ax, by - ay])
-            n_len = float(np.linalg.norm(d))
-            d /= n_len
-            nrm = np.array([-d[1], d[0]])
-            for s in np.arange(18.0, n_len - 15, float(rng.uniform(22, 30))):
-                side = 1 if rng.random() < 0.5 else -1
-                p = np.array([ax, ay]) + d * s + nrm * 6.5 * side
-                yaw = math.atan2(d[1], d[0])
-                q = p + nrm * 0.4 * side
-                if self._free(float(p[0]), float(p[1]), 1.0, margin=0.2):
-                    b.box(float(p[0]), float(p[1]), yaw, 1.8, 0.6, 0.0, 0.48, OTHER, bench, self._cap(0x8B5A2B))
-                    b.box(float(q[0]), float(q[1]), yaw, 1.8, 0.08, 0.48, 0.95, OTHER, back, self._cap(0x6E4420))
-                    self._occupy(float(p[0]), float(p[1]), yaw, 2.0, 1.4)
-                    r = p + d * 1.6
-                    if self._free(float(r[0]), float(r[1]), 0.3, margin=0.1):
-                        b.cylinder(float(r[0]), float(r[1]), 0.28, 0.0, 0.95, OTHER, bin_strip, self._cap(0x1F3D35))
-                        self._occupy(float(r[0]), float(r[1]), 0.0, 0.7, 0.7)
-
-    def _place_fences(self, rng: np.random.Generator) -> None:
-        """The perimeter fence with gaps for the entrances, and a low railing beside the parking lot."""
-        gaps = {"s": (self.Xs - 7, self.Xs + 7), "e": (self.Ye - 7, self.Ye + 7)}
-
-        def fence(x0, y0, x1, y1, h=1.9, color=0x59636B, spacing=2.5, mesh=0.14):
-            L = math.hypot(x1 - x0, y1 - y0)
-            if L < 1.0:
-                return
-            strip = self._atlas.add(tx.fence_strip(rng, L, 0.06, h, color, spacing, mesh))
-            self._b.box((x0 + x1) / 2, (y0 + y1) / 2, math.atan2(y1 - y0, x1 - x0), L, 0.06, 0.0, h, POLE, strip, self._cap(color), cutout=True)
-
-        e = 0.6
-        fence(e, e, gaps["s"][0], e)
-        fence(gaps["s"][1], e, WIDTH_M - e, e)
-        fence(WIDTH_M - e, e, WIDTH_M - e, gaps["e"][0])
-        fence(WIDTH_M - e, gaps["e"][1], WIDTH_M - e, DEPTH_M - e)
-        fence(WIDTH_M - e, DEPTH_M - e, e, DEPTH_M - e)
-        fence(e, DEPTH_M - e, e, e)
-        pk = self.parking_box
-        fence(pk[2] - 0.3, pk[1] + 0.5, pk[2] - 0.3, pk[3] - 0.5, h=1.2, color=0x8C9196, spacing=2.0, mesh=0.5)
-
-    def _place_bollards_and_racks(self, strips: dict) -> None:
-        """Bollards along the plaza and bike racks beside every third building."""
-        b = self._b
-        px0, py0, px1, py1 = self.plaza
-        for y in np.arange(py0 + 1.0, py1 - 0.5, 1.6):
-            if self._free(px1 + 0.3, float(y), 0.1, margin=0.1):
-                b.cylinder(px1 + 0.3, float(y), 0.1, 0.0, 0.9, POLE, strips["bollard"], strips["grey"])
-        rack = tx.Canvas(2 * (4.0 + 0.08), 0.85, 0x9AA0A6)
-        rack.rect(0, 0, rack.width_m, 0.85, hole=True)
-        for u in np.arange(0.0, rack.width_m, 0.7):
-            rack.rect(u, 0, u + 0.06, 0.85, hole=False)
-        rack.rect(0, 0, rack.width_m, 0.06, hole=False)
-        rack_strip = self._atlas.add(rack)
-        for k, fp in enumerate(self.buildings):
-            if k % 3 != 1:
-                continue
-            c = fp.mean(0)
-            edge = fp[1] - fp[0]
-            yaw = math.atan2(edge[1], edge[0])
-            nrm = np.array([-math.sin(yaw), math.cos(yaw)])
-            for sgn in (1, -1):
-                p = c + nrm * sgn * (np.linalg.norm(fp[3] - fp[0]) / 2 + 1.8)
-                if self._free(float(p[0]), float(p[1]), 2.1, margin=0.1):
-                    b.box(float(p[0]), float(p[1]), yaw, 4.0, 0.08, 0.0, 0.85, OTHER, rack_strip, self._cap(0x9AA0A6), cutout=True)
-                    self._occupy(float(p[0]), float(p[1]), yaw, 4.2, 0.4)
-                    break
-
     # ================================================================= moving things
     def _make_dynamic_appearances(self, rng: np.random.Generator) -> None:
         L, W, H = CAR_SIZE
@@ -532,87 +411,6 @@ class Campus:
                 raise ValueError(f"unknown dynamic object kind {o.kind!r} (car, person)")
         return b.build()
 
-    # ================================================================= ground colour
-    def _paint_ground_albedo(self, rng: np.random.Generator) -> None:
-        g = self.ground
-        base = {
-            BACKGROUND: (0x8A865E, 0.10, 0.16),
-            ROAD: (0x5A5C5E, 0.10, 0.06),
-            SIDEWALK: (0xA9A49A, 0.06, 0.05),
-            GRASS: (0x5E8C3A, 0.16, 0.10),
-        }
-        X0, X1, Y0, Y1, Ym = self.X0, self.X1, self.Y0, self.Y1, self.Ym
-        dash = []
-        for route in (self.circuits["south"], self.circuits["north"]):
-            dash.append(route.points)
-        manholes = [(float(rng.uniform(X0, X1)), Y0 + rng.uniform(-1.5, 1.5)) for _ in range(3)]
-        manholes += [(X0 + rng.uniform(-1.5, 1.5), float(rng.uniform(Y0, Y1))) for _ in range(3)]
-        manholes += [(float(rng.uniform(X0, X1)), Ym + rng.uniform(-1.5, 1.5)) for _ in range(3)]
-        patches = [(float(rng.uniform(X0 - 2, X1 + 2)), float(rng.uniform(Y0 - 2, Y1 + 2)), float(rng.uniform(1, 4)), float(rng.uniform(1, 3)))
-                   for _ in range(25)]
-
-        def patterns(albedo: np.ndarray) -> None:
-            L = g.labels
-            x, y = g.world_grid()
-            f = np.ones(L.shape, np.float32)  # brightness factor of the patterns below
-            side = L == SIDEWALK
-            f[side & ((np.mod(x, 0.6) < 0.04) | (np.mod(y, 0.6) < 0.04))] = 0.82  # tile joints
-            f[(L == GRASS) & (np.mod(x + 0.3 * y, 3.0) < 1.5)] = 1.06  # mowing stripes
-            outside = L == BACKGROUND
-            quad = (x > WIDTH_M / 2) ^ (y > DEPTH_M / 2)
-            f[outside & quad & (np.mod(x * 0.8 + y * 0.6, 1.6) < 0.5)] = 0.88  # crop rows
-            f[outside & ~quad & (np.mod(y, 2.2) < 0.6)] = 1.07
-            patch = np.zeros_like(L)
-            for xx, yy, w, h in patches:
-                g.rect(patch, xx, yy, float(rng.uniform(0, math.pi)), w, h, 1)
-            f[(patch > 0) & (L == ROAD)] = 0.8  # asphalt repairs
-            albedo *= f[..., None]
-            px0, py0, px1, py1 = self.plaza
-            r0, r1 = (int(v) for v in np.clip(np.round(g.to_raster(0, np.array([py0, py1]))[1]), 0, g.rows))
-            c0, c1 = (int(v) for v in np.clip(np.round(g.to_raster(np.array([px0, px1]), 0)[0]), 0, g.cols))
-            xs, ys = x[:, c0:c1], y[r0:r1]
-            big = ((np.mod(xs - px0, 2.4) < 1.2) ^ (np.mod(ys - py0, 2.4) < 1.2)) & side[r0:r1, c0:c1]
-            albedo[r0:r1, c0:c1][big] *= np.array([1.08, 1.0, 0.9], np.float32)  # plaza slabs
-            curb = cv2.dilate(side.astype(np.uint8), np.ones((3, 3), np.uint8)) & (L == ROAD)
-            albedo[curb > 0] = (0.72, 0.71, 0.68)
-            canvas = albedo
-            white = (0.86, 0.86, 0.84)
-            yellow = (0.85, 0.72, 0.25)
-            for pts in dash:  # dashed centre lines: 3 m dash, 3 m gap
-                seg = np.linalg.norm(np.diff(np.vstack([pts, pts[:1]]), axis=0), axis=1)
-                phase = np.floor(np.concatenate([[0], np.cumsum(seg)])[:-1] / 3.0).astype(int)
-                for k in np.unique(phase[phase % 2 == 0]):
-                    g.polyline(canvas, pts[phase == k], 0.14, yellow)
-            for route in (self.car_routes[0],):
-                for d in (-2.75, 2.75):
-                    g.polyline(canvas, route.offset(d).points, 0.12, white, closed=True)
-            g.polyline(canvas, [(X0 + 2.75, Ym - 2.75), (X1 - 2.75, Ym - 2.75)], 0.12, white)
-            g.polyline(canvas, [(X0 + 2.75, Ym + 2.75), (X1 - 2.75, Ym + 2.75)], 0.12, white)
-            # zebra crossings next to the junctions and entrances
-            for (x0, y0, ax) in ((X0 + 9, Ym, "x"), (X1 - 9, Ym, "x"), (X0, Ym + 9, "y"), (X1, Ym - 9, "y"), (self.Xs + 8, Y0, "x"), (X1, self.Ye + 8, "y")):
-                for k in np.arange(-2.5, 2.6, 1.0):
-                    if ax == "x":
-                        g.rect(canvas, x0, y0 + k, 0.0, 3.0, 0.5, white)
-                    else:
-                        g.rect(canvas, x0 + k, y0, 0.0, 0.5, 3.0, white)
-            # parking bays
-            pk = self.parking_box
-            for yy in np.arange(pk[1] + 0.25, pk[3], 2.7):
-                g.polyline(canvas, [(pk[0] + 2.2, yy), (pk[0] + 6.8, yy)], 0.1, white)
-            for mx, my in manholes:
-                g.circle(canvas, mx, my, 0.38, (0.22, 0.22, 0.23))
-                g.circle(canvas, mx, my, 0.3, (0.32, 0.31, 0.3))
-            # turn arrows on the cross street
-            for x0, sgn in ((X0 + 16, 1), (X1 - 16, -1)):
-                yy = Ym - 1.5 * sgn
-                g.rect(canvas, x0, yy, 0.0, 3.0, 0.18, white)
-                g.polygon(canvas, [(x0 + 1.5 * sgn, yy - 0.45), (x0 + 2.3 * sgn, yy), (x0 + 1.5 * sgn, yy + 0.45)], white)
-
-        g.paint_albedo(rng, base, patterns)
-        g.detail = 0.6 * tx.tileable_noise(rng, 256, 1.2) + 0.8 * tx.tileable_noise(rng, 256, 4.0)
-        for lab, amount in ((ROAD, 0.10), (SIDEWALK, 0.07), (GRASS, 0.22), (BACKGROUND, 0.18)):
-            g.detail_amount[lab] = amount
-
     # ================================================================= sky, hills
     def _make_far_field(self, rng: np.random.Generator) -> None:
         n = 720
@@ -631,10 +429,6 @@ class Campus:
         self.center = np.array([WIDTH_M / 2, DEPTH_M / 2])
 
     # ================================================================= lighting
-    def ground_light(self, lighting: Lighting) -> np.ndarray:
-        """Irradiance factor of the ground ``(rows/2, cols/2)`` float32 with the shadows of the static scene."""
-        return self._cached("ground", lighting, lambda: _ground_light(self, lighting))
-
     def sky_panorama(self, lighting: Lighting) -> np.ndarray:
         """Sky colour ``(256, 2048, 3)`` uint8 RGB over elevation (rows, 0 to 90 deg) and azimuth (columns, 0 to 360 deg)."""
         def make():
@@ -654,43 +448,3 @@ class Campus:
                 cache.pop(next(iter(cache)))
             cache[key] = make()
         return cache[key]
-
-
-def _ground_light(campus: Campus, lighting: Lighting) -> np.ndarray:
-    g = campus.ground
-    shape = (g.rows // 2, g.cols // 2)
-    shadow = np.zeros(shape, np.uint8)
-    e = max(lighting.sun_elevation, math.radians(3.0))
-    k = 1.0 / math.tan(e)
-    sd = lighting.sun_direction()
-    away = -np.array([sd[0], sd[1]]) / max(math.hypot(sd[0], sd[1]), 1e-9)
-    P = campus.prims
-
-    def to_px(xy: np.ndarray) -> np.ndarray:
-        c, r = g.to_raster(xy[:, 0], xy[:, 1])
-        return np.round(np.stack([(c + 0.5) / 2 - 0.5, (r + 0.5) / 2 - 0.5], -1) * 16).astype(np.int32)
-
-    for i in range(len(P)):
-        kind = P.kind[i]
-        ctr = np.array([P.cx[i], P.cy[i]])
-        if kind == ELLIPSOID:
-            zc = (P.z0[i] + P.z1[i]) / 2
-            bv = (P.z1[i] - P.z0[i]) / 2
-            c = ctr + away * zc * k
-            along = math.hypot(P.a[i], bv * k)
-            ang = math.degrees(math.atan2(away[1], away[0]))
-            cc = to_px(c[None])[0]
-            cv2.ellipse(shadow, (int(cc[0]), int(cc[1])), (int(along / (2 * RES) * 16), int(P.a[i] / (2 * RES) * 16)), ang, 0, 360, 1, -1, cv2.LINE_8, 4)
-            continue
-        if kind == BOX:
-            ca, sa = P.cos[i], P.sin[i]
-            ex, ey = np.array([ca, sa]) * P.a[i], np.array([-sa, ca]) * P.b[i]
-            foot = np.array([ctr - ex - ey, ctr + ex - ey, ctr + ex + ey, ctr - ex + ey])
-        else:
-            ang = np.arange(8) * math.pi / 4
-            foot = ctr + P.a[i] * np.stack([np.cos(ang), np.sin(ang)], 1) / math.cos(math.pi / 8)
-        pts = np.vstack([foot + away * P.z0[i] * k, foot + away * P.z1[i] * k])
-        cv2.fillConvexPoly(shadow, cv2.convexHull(to_px(pts).astype(np.int32)), 1, cv2.LINE_8, 4)
-    soft = cv2.GaussianBlur(shadow.astype(np.float32), (5, 5), 1.2)
-    direct = lighting.sun * max(0.0, math.sin(lighting.sun_elevation))
-    return (lighting.ambient + direct * (1.0 - soft)).astype(np.float32)

@@ -20,7 +20,8 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 
 from vlocnetpp_core import geometry
-from vlocnetpp_core.synth.campus import CAR_PAINTS, CAR_SIZE, LANES, SHIRTS, Campus, DynamicObject, stable_seed
+from vlocnetpp_core.synth.campus import Campus, DynamicObject, stable_seed
+from vlocnetpp_core.synth.layout import CAR_PAINTS, CAR_SIZE, LANES, SHIRTS
 from vlocnetpp_core.synth.lighting import PRESETS, Lighting, sample_lighting
 from vlocnetpp_core.synth.render import level_rotation
 from vlocnetpp_core.synth.route import Route

@@ -8,8 +8,9 @@ import cv2
 import numpy as np
 
 from vlocnetpp_core.classes import colorize
-from vlocnetpp_core.synth.campus import DEPTH_M, WIDTH_M, Campus
+from vlocnetpp_core.synth.campus import Campus
 from vlocnetpp_core.synth.ground import RES
+from vlocnetpp_core.synth.layout import DEPTH_M, WIDTH_M
 from vlocnetpp_core.synth.prims import BOX, ELLIPSOID
 
 TRAIN_COLORS = [(31, 119, 180), (23, 190, 207), (44, 160, 44), (148, 103, 189), (140, 86, 75), (127, 127, 127)]

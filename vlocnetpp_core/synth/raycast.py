@@ -19,7 +19,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from vlocnetpp_core.synth.campus import HILLS_RADIUS, Campus
+from vlocnetpp_core.synth.campus import Campus
+from vlocnetpp_core.synth.layout import HILLS_RADIUS
 from vlocnetpp_core.synth.prims import BOX, ELLIPSOID, Prims
 from vlocnetpp_core.synth.textures import PPM
 

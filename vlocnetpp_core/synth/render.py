@@ -25,7 +25,8 @@ import numpy as np
 
 from vlocnetpp_core import geometry
 from vlocnetpp_core.intrinsics import Intrinsics
-from vlocnetpp_core.synth.campus import HILLS_RADIUS, Campus, DynamicObject
+from vlocnetpp_core.synth.campus import Campus, DynamicObject
+from vlocnetpp_core.synth.layout import HILLS_RADIUS
 from vlocnetpp_core.synth.lighting import DEFAULT_LIGHTING, Lighting
 from vlocnetpp_core.synth.prims import CYLINDER, Prims
 from vlocnetpp_core.synth.raycast import E_OFFSET, GROUND, HILLS, SKY_CODE, LevelCamera, LevelImage, cast

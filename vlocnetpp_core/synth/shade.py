@@ -12,8 +12,9 @@ import math
 import cv2
 import numpy as np
 
-from vlocnetpp_core.synth.campus import HILLS_MAX_M, SKY, Campus
+from vlocnetpp_core.synth.campus import Campus
 from vlocnetpp_core.synth.ground import DETAIL_FADE, DETAIL_RES, MIP_LEVELS, OUTSIDE_RGB, RES
+from vlocnetpp_core.synth.layout import HILLS_MAX_M, SKY
 from vlocnetpp_core.synth.lighting import Lighting
 from vlocnetpp_core.synth.raycast import E_OFFSET, HILLS, SKY_CODE, LevelCamera, LevelImage
 from vlocnetpp_core.synth.textures import LEVELS, PPM
