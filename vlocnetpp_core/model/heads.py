@@ -131,6 +131,14 @@ def bilinear_kernel(channels: int, kernel_size: int) -> torch.Tensor:
     return weight
 
 
+def _float32(layer: nn.Module, x: torch.Tensor) -> torch.Tensor:
+    """``layer(x)`` in float32, also under autocast: on the CPU (torch 2.13) a bfloat16 ConvTranspose2d of kernel 16,
+    stride 8 (``up8``) returns wrong input gradients (cosine 0.01 to float32's; kernel 4, stride 2 is right), and
+    segmentation trained with ``--bf16`` diverged. At ``num_classes`` channels float32 costs next to nothing."""
+    with torch.autocast(x.device.type, enabled=False):
+        return layer(x.float())
+
+
 class SegmentationDecoder(nn.Module):
     """AdapNet decoder: class scores at stride 16, deconv x2, add a skip from Res3, deconv x8.
 
@@ -154,9 +162,9 @@ class SegmentationDecoder(nn.Module):
             self.up8.weight.copy_(bilinear_kernel(self.up8.in_channels, 16))
 
     def forward(self, deep: torch.Tensor, skip: torch.Tensor) -> torch.Tensor:
-        y = self.up2(self.score(self.deep_norm(deep)))
+        y = _float32(self.up2, self.score(self.deep_norm(deep)))
         y = y + self.skip(self.skip_norm(skip))
-        return self.up8(y)
+        return _float32(self.up8, y)
 
 
 class DepthHead(nn.Module):
