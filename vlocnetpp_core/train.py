@@ -92,7 +92,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu", help="cpu or cuda (default: cuda if present)")
     p.add_argument("--bf16", action="store_true",
                    help="train with bfloat16 autocast: convolutions and matrix products in bfloat16, the pose heads, warping, "
-                        "losses and the weights in float32 (about 1.5x faster on CPUs with AMX or AVX-512 BF16 and on GPUs; "
+                        "losses and the weights in float32 (about 1.8x faster on CPUs with AMX or AVX-512 BF16, and on GPUs; "
                         "slower on CPUs without); validation and the saved weights stay float32")
     p.add_argument("--seed", type=int, default=0, help="random seed (data order, augmentation, init)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar (log lines only)")
