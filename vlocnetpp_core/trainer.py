@@ -134,7 +134,7 @@ class Trainer:
             raise UserError(f"--freeze {','.join(self.frozen)}: nothing of what {args.stage} trains is left to train")
         params += list(self.criterion.parameters())
         self.lr = args.lr if args.lr is not None else DEFAULT_LR[args.stage]
-        self.optimizer = torch.optim.Adam(params, lr=self.lr, betas=(0.9, 0.999), eps=1e-10, fused=True)  # one kernel for all tensors
+        self.optimizer = torch.optim.Adam(params, lr=self.lr, betas=(0.9, 0.999), eps=1e-10)
 
     def _frozen_parts(self) -> tuple[str, ...]:
         """``--freeze``, plus the trunk of one pose stream trained on top of the other's: kept as the first stage learned it

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
 
 import torch
@@ -83,9 +84,9 @@ class PoseHead(nn.Module):
             getattr(self, name).copy_(values)
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
-        """Always in float32, also under autocast (bfloat16 resolves half a metre at 100 m)."""
-        with torch.autocast(x.device.type, enabled=False):
-            return self._forward(x.float())
+        """In the weights' dtype (float32), also under autocast: bfloat16 resolves only half a metre at 100 m."""
+        with without_autocast(x):
+            return self._forward(x.to(self.fc1.weight.dtype))
 
     def _forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
         if self.flatten_size is None:
@@ -131,12 +132,17 @@ def bilinear_kernel(channels: int, kernel_size: int) -> torch.Tensor:
     return weight
 
 
-def _float32(layer: nn.Module, x: torch.Tensor) -> torch.Tensor:
-    """``layer(x)`` in float32, also under autocast: on the CPU (torch 2.13) a bfloat16 ConvTranspose2d of kernel 16,
-    stride 8 (``up8``) returns wrong input gradients (cosine 0.01 to float32's; kernel 4, stride 2 is right), and
-    segmentation trained with ``--bf16`` diverged. At ``num_classes`` channels float32 costs next to nothing."""
-    with torch.autocast(x.device.type, enabled=False):
-        return layer(x.float())
+def without_autocast(x: torch.Tensor) -> contextlib.AbstractContextManager:
+    """A block that autocast does not reach (on ``x``'s device), for what must compute in the weights' precision."""
+    return torch.autocast(x.device.type, enabled=False) if x.device.type in ("cpu", "cuda") else contextlib.nullcontext()
+
+
+def _in_weight_dtype(layer: nn.Module, x: torch.Tensor) -> torch.Tensor:
+    """``layer(x)`` in the layer's dtype, also under autocast: on the CPU (torch 2.13) a bfloat16 ConvTranspose2d of
+    kernel 16, stride 8 (``up8``) returns wrong input gradients (cosine 0.01 to float32's; kernel 4, stride 2 is right),
+    and segmentation trained with ``--bf16`` diverged. At ``num_classes`` channels float32 costs next to nothing."""
+    with without_autocast(x):
+        return layer(x.to(layer.weight.dtype))
 
 
 class SegmentationDecoder(nn.Module):
@@ -162,9 +168,9 @@ class SegmentationDecoder(nn.Module):
             self.up8.weight.copy_(bilinear_kernel(self.up8.in_channels, 16))
 
     def forward(self, deep: torch.Tensor, skip: torch.Tensor) -> torch.Tensor:
-        y = _float32(self.up2, self.score(self.deep_norm(deep)))
+        y = _in_weight_dtype(self.up2, self.score(self.deep_norm(deep)))
         y = y + self.skip(self.skip_norm(skip))
-        return _float32(self.up8, y)
+        return _in_weight_dtype(self.up8, y)
 
 
 class DepthHead(nn.Module):

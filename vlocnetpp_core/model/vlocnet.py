@@ -44,7 +44,7 @@ from vlocnetpp_core.model.anchors import kmeans_anchors, rotation_anchors
 from vlocnetpp_core.model.backbone import init_weights
 from vlocnetpp_core.model.config import TASKS, ModelConfig
 from vlocnetpp_core.model.fusion import AdaptiveWeightedFusion
-from vlocnetpp_core.model.heads import DepthHead
+from vlocnetpp_core.model.heads import DepthHead, without_autocast
 from vlocnetpp_core.model.streams import GlobalPoseStream, OdometryStream, SemanticStream, Trunk
 
 
@@ -330,8 +330,9 @@ class _Warper:
     """Warps previous-frame features into the current view; one float32 input-resolution grid, pooled per feature size."""
 
     def __init__(self, depth: torch.Tensor, T_rel: torch.Tensor, K: torch.Tensor):
-        with torch.autocast(depth.device.type, enabled=False):  # pixel coordinates in float32, also under autocast
-            self.grid, self.valid = warp_grid(depth.float(), T_rel.float(), K.float())
+        dtype = torch.promote_types(depth.dtype, torch.float32)  # pixel coordinates in float32 (or 64), also under autocast
+        with without_autocast(depth):
+            self.grid, self.valid = warp_grid(depth.to(dtype), T_rel.to(dtype), K.to(dtype))
         self.pooled: dict[tuple[int, int], tuple[torch.Tensor, torch.Tensor]] = {}
 
     def __call__(self, features: torch.Tensor) -> torch.Tensor:
