@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import argparse
 
-from vlocnetpp_core.interrupts import sigterm_as_interrupt
-
 
 def _size(text: str) -> tuple[int, int]:
     try:
@@ -40,13 +38,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from vlocnetpp_core.synth.writer import render_dataset
 
-    with sigterm_as_interrupt():  # SIGTERM unwinds like Ctrl-C, so the partial output is removed
-        s = render_dataset(
-            args.out, scene=args.scene, seed=args.seed, train_loops=args.loops, test_loops=args.test_loops,
-            frames_per_loop=args.frames_per_loop, size=args.size, force=args.force, progress=not args.no_progress,
-            frame_interval=args.frame_interval, test_lane_offset=args.test_lane_offset,
-            lane_wander=args.lane_wander,
-        )
+    # SIGTERM unwinds like Ctrl-C (vlocnetpp_core.cli runs every command so), so the partial output is removed
+    s = render_dataset(
+        args.out, scene=args.scene, seed=args.seed, train_loops=args.loops, test_loops=args.test_loops,
+        frames_per_loop=args.frames_per_loop, size=args.size, force=args.force, progress=not args.no_progress,
+        frame_interval=args.frame_interval, test_lane_offset=args.test_lane_offset,
+        lane_wander=args.lane_wander,
+    )
     w, h = s["size"]
     print(f"wrote {s['out']}: {args.loops} train + {args.test_loops} test loops, {s['frames']} frames at {w}x{h} "
           f"(scene {s['scene']}, seed {s['seed']}) in {s['seconds']:.1f} s, rendering {s['render_fps']:.1f} frames/s")
