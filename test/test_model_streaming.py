@@ -157,8 +157,8 @@ def test_single_task_stage_trains_only_its_streams():
     assert changed == {"semantic", "depth"}
 
 
-def test_bf16_autocast_keeps_the_pose_heads_in_float32():
-    """train --bf16: under bfloat16 autocast the trunk and streams run in bfloat16 but the pose heads in float32, so a
+def test_bf16_autocast_keeps_the_pose_and_depth_heads_in_float32():
+    """train --bf16: under bfloat16 autocast the trunk and streams run in bfloat16 but the pose (and depth) heads in float32, so a
     position 1000 m from the origin keeps centimetres (bfloat16 steps by 4 m there) and matches the float32 forward."""
     torch.manual_seed(0)
     net = VLocNetPP(lite(input_size=(W, H))).eval()
@@ -171,7 +171,7 @@ def test_bf16_autocast_keeps_the_pose_heads_in_float32():
             mixed = net(batch["image"], batch["K"])
     for low, ref in zip(mixed, full, strict=True):
         assert low.taps["res3"].dtype == torch.bfloat16  # autocast was on
-        assert {o.dtype for o in (low.xyz, low.quat, low.rel_xyz, low.rel_quat)} == {torch.float32}
+        assert {o.dtype for o in (low.xyz, low.quat, low.rel_xyz, low.rel_quat, low.depth)} == {torch.float32}
         assert float((low.xyz - ref.xyz).abs().max()) < 0.25  # measured 0.015 m; a bfloat16 head: up to 2 m
         assert float((low.quat - ref.quat).abs().max()) < 0.1  # measured 0.02
 

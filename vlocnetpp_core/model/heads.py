@@ -191,6 +191,12 @@ class DepthHead(nn.Module):
         self.log_max = math.log(depth_range[1])
 
     def forward(self, x: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+        """In the weights' dtype (float32), also under autocast, like the pose heads: a metric regression (the
+        bfloat16 head's gradients were 28 % larger than float32's, cosine 0.975, against 0.999 in the encoder)."""
+        with without_autocast(x):
+            return self._forward(x.to(self.conv.weight.dtype), size)
+
+    def _forward(self, x: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
         score = self.out(F.elu(self.conv(self.norm(x))))
         score = F.interpolate(score, size=size, mode="bilinear", align_corners=False)
         return torch.exp(self.log_min + (self.log_max - self.log_min) * torch.sigmoid(score))
