@@ -56,8 +56,23 @@ def test_clips_without_depth_and_labels_skip_their_files(deeploc_index):
     light = ClipDataset(deeploc_index, 3, make_transform(False, (64, 48)), depth=False, labels=False)[4]
     for key in ("image", "t", "q", "rel_t", "rel_q", "K", "stamp", "index"):
         assert torch.equal(full[key], light[key]), key
-    assert full["has_depth"].item() and not light["has_depth"].item() and light["depth"].abs().max() == 0
-    assert full["has_labels"].item() and not light["has_labels"].item() and (light["labels"] == 255).all()
+    assert full["has_depth"].item() and not light["has_depth"].item() and "depth" not in light
+    assert full["has_labels"].item() and not light["has_labels"].item() and "labels" not in light
+
+
+@pytest.mark.parametrize("stride", [1, 2])
+def test_relative_poses_of_every_clip_compose_its_frames_poses(deeploc_index, stride):
+    """The relative poses computed once for all clips are those of each clip's frame pairs (T_{k-1}^{-1} T_k)."""
+    ds = ClipDataset(deeploc_index, 3, stride=stride)
+    assert len(ds) > 0
+    for i in range(len(ds)):
+        s, r = ds[i], [deeploc_index.records[j] for j in ds.clip_indices(i)]
+        assert s["rel_t"][0].abs().max() == 0 and s["rel_q"][0].tolist() == [1, 0, 0, 0]
+        for k in (1, 2):
+            rt, rq = geometry.relative_pose(np.array(r[k - 1].t), np.array(r[k - 1].q), np.array(r[k].t), np.array(r[k].q))
+            assert np.linalg.norm(rt) > 0.01  # the frames moved
+            np.testing.assert_allclose(s["rel_t"][k].numpy(), rt, atol=1e-6)
+            np.testing.assert_allclose(s["rel_q"][k].numpy(), rq, atol=1e-6)
 
 
 def test_absent_depth_and_labels_are_filled(tmp_path):
