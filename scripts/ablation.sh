@@ -49,6 +49,7 @@ seeds, lane, args = sys.argv[1].split(), sys.argv[2], sys.argv[3:]
 cols = [("median t [m]", "pose", "median_translation_m", 1, "{:.1f}"), ("median R [deg]", "pose", "median_rotation_deg", 1, "{:.1f}"),
         ("< 0.5 m, 5 deg [%]", "pose", "accuracy_0.5m_5deg", 100, "{:.1f}"),
         ("VO t [%]", "odometry", "translation_error_percent", 1, "{:.1f}"), ("VO R [deg/m]", "odometry", "rotation_error_deg_per_m", 1, "{:.2f}"),
+        ("VO scale", "odometry", "step_scale", 1, "{:.2f}"),
         ("mIoU [%]", "segmentation", "miou", 100, "{:.1f}")]
 print("| model | seed | " + " | ".join(c[0] for c in cols) + " |")
 print("|---|---|" + "---|" * len(cols))
@@ -56,7 +57,9 @@ runs = [(label, [json.load(open(f"{prefix}.seed{s}{lane}.json")) for s in seeds]
 runs.append(("retrieval (nearest training image)", [r["baseline"] for r in runs[0][1]]))
 for label, reports in runs:
     per_seed = [r["overall"] for r in reports]
-    values = [[m[group][key] * scale if m.get(group) else float("nan") for _, group, key, scale, _ in cols] for m in per_seed]
+    # nan where a report lacks the number (no such stream; step_scale in a report written before it existed)
+    values = [[(m.get(group) or {}).get(key) for _, group, key, _, _ in cols] for m in per_seed]
+    values = [[float("nan") if x is None else x * c[3] for c, x in zip(cols, v)] for v in values]
     for seed, v in zip(seeds, values):
         print(f"| {label} | {seed}{lane} | " + " | ".join(c[4].format(x) for c, x in zip(cols, v)) + " |")
     mean = np.mean(values, axis=0)

@@ -52,7 +52,7 @@ def test_evaluate_writes_report_trajectories_and_plots(evaluated, capsys):
     for part in (report["overall"], report["per_sequence"]["seq-00"]):
         assert list(part) == ["pose", "odometry", "segmentation", "timing"]
         assert list(part["pose"]) == ["median_translation_m", "median_rotation_deg", "accuracy_5cm_5deg", "accuracy_0.5m_5deg"]
-        assert list(part["odometry"]) == ["translation_error_percent", "rotation_error_deg_per_m", "lengths_m"]
+        assert list(part["odometry"]) == ["translation_error_percent", "rotation_error_deg_per_m", "lengths_m", "step_scale"]
         assert list(part["segmentation"]) == ["miou", "iou", "pixel_accuracy"]
         assert list(part["segmentation"]["iou"]) == list(CLASS_NAMES)
         assert 0.0 <= part["segmentation"]["miou"] <= 1.0 and 0.0 <= part["segmentation"]["pixel_accuracy"] <= 1.0

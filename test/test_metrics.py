@@ -181,7 +181,7 @@ def test_evaluate_sequences_per_sequence_and_pooled():
     assert list(report["per_sequence"]) == ["seq-01", "seq-02"]
     for part in [report["overall"], *report["per_sequence"].values()]:
         assert list(part) == ["pose", "odometry", "segmentation", "timing"]
-        assert set(part["odometry"]) == {"translation_error_percent", "rotation_error_deg_per_m", "lengths_m"}
+        assert set(part["odometry"]) == {"translation_error_percent", "rotation_error_deg_per_m", "lengths_m", "step_scale"}
         assert set(part["timing"]) == {"mean_ms", "median_ms"}
     pa, pb = report["per_sequence"]["seq-01"], report["per_sequence"]["seq-02"]
     assert pa["pose"]["accuracy_5cm_5deg"] == 1.0 and pb["pose"]["accuracy_5cm_5deg"] == 0.0
@@ -198,11 +198,22 @@ def test_evaluate_sequences_per_sequence_and_pooled():
     count_b = sum(c for _, c in per_length.values())
     assert report["overall"]["odometry"]["translation_error_percent"] == pytest.approx(100 * expected_b * count_b / (count_a + count_b))
     assert pb["timing"] == {"mean_ms": 30.0, "median_ms": 30.0}
+    # the scale bias: every step of b 1.2 times too long; pooled, b's 20 pairs outnumber a's 10
+    assert pa["odometry"]["step_scale"] == pytest.approx(1.0) and pb["odometry"]["step_scale"] == pytest.approx(1.2)
+    assert report["overall"]["odometry"]["step_scale"] == pytest.approx(1.2)
+
     assert report["overall"]["timing"]["mean_ms"] == pytest.approx((11 * 10 + 21 * 30) / 32)
     # labels alternate 0/1 per frame, prediction always 0: IoU(0) = frames with 0 / all frames
     assert pa["segmentation"]["iou"]["Background"] == pytest.approx(6 / 11)
     assert pa["segmentation"]["iou"]["Sky"] == 0.0
     assert report["overall"]["segmentation"]["pixel_accuracy"] == pytest.approx((6 + 11) / 32)
+
+
+def test_step_ratios_skip_pairs_that_did_not_move():
+    """A standing camera has no step to compare with: only the pairs that moved count."""
+    true_t = np.array([[0.0, 0, 0], [1.0, 0, 0], [1.0, 0, 0], [3.0, 0, 0]])
+    rel_t = np.array([[0.0, 0, 0], [0, 0, 1.5], [0, 0, 0.2], [0, 0, 1.0]])
+    np.testing.assert_allclose(metrics.step_ratios(true_t, rel_t), [1.5, 0.5])
 
 
 # --------------------------------------------------------------------------- trajectories, TUM, evo

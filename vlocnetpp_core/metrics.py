@@ -11,7 +11,9 @@
   lengths are 10%, 20%, ..., 80% of the *shortest* sequence's ground-truth path length (one set for
   every sequence, so per-sequence numbers are comparable and pool into the overall number), and
   every frame starts segments. Errors are averaged over all segments (pooled over sequences for
-  "overall"), reported as ``translation_error_percent`` and ``rotation_error_deg_per_m``.
+  "overall"), reported as ``translation_error_percent`` and ``rotation_error_deg_per_m``; beside
+  them ``step_scale``, the median over frame pairs of the predicted step length over the true one
+  (a monocular odometry's scale bias, the usual share of its drift: 1.2 = 20 % too far).
 * Segmentation: per-class IoU, mIoU and pixel accuracy from a confusion matrix (rows true, columns
   predicted, label 255 ignored). A class absent from both ground truth and prediction has IoU
   ``None`` and is left out of the mean.
@@ -109,13 +111,24 @@ def kitti_segment_errors(T_true: np.ndarray, T_pred: np.ndarray, lengths_m: Sequ
     return np.array(t_err), np.array(r_err)
 
 
-def odometry_metrics(t_err: np.ndarray, r_err: np.ndarray, lengths_m: Sequence[float]) -> dict:
-    """``translation_error_percent``, ``rotation_error_deg_per_m`` (means over segments) and ``lengths_m``."""
+def step_ratios(true_t: np.ndarray, rel_t: np.ndarray, min_step_m: float = 0.01) -> np.ndarray:
+    """``(M,)`` predicted over true step length of every frame pair whose camera moved at least ``min_step_m``:
+    ``|rel_t[k]| / |true_t[k] - true_t[k-1]|`` (``true_t (N, 3)`` world positions, ``rel_t (N, 3)`` the predicted
+    ``T_{k-1}^{-1} T_k`` translations, row 0 ignored)."""
+    true_step = np.linalg.norm(np.diff(true_t, axis=0), axis=1)
+    moved = true_step >= min_step_m
+    return np.linalg.norm(rel_t[1:], axis=1)[moved] / true_step[moved]
+
+
+def odometry_metrics(t_err: np.ndarray, r_err: np.ndarray, lengths_m: Sequence[float], ratios: np.ndarray | None = None) -> dict:
+    """``translation_error_percent``, ``rotation_error_deg_per_m`` (means over segments), ``lengths_m`` and
+    ``step_scale`` (median of :func:`step_ratios`; None without pairs)."""
     empty = len(t_err) == 0
     return {
         "translation_error_percent": None if empty else float(np.mean(t_err) * 100.0),
         "rotation_error_deg_per_m": None if empty else float(np.mean(r_err)),
         "lengths_m": [float(v) for v in lengths_m],
+        "step_scale": None if ratios is None or len(ratios) == 0 else float(np.median(ratios)),
     }
 
 
@@ -302,22 +315,23 @@ def evaluate_sequences(
     if odometry_lengths_m is None:
         odometry_lengths_m = default_odometry_lengths([r.ground_truth().path_length() for r in results])
     per_sequence: dict[str, dict] = {}
-    pooled: dict[str, list] = {"trans": [], "rot": [], "t_seg": [], "r_seg": [], "ms": []}
+    pooled: dict[str, list] = {"trans": [], "rot": [], "t_seg": [], "r_seg": [], "steps": [], "ms": []}
     total_conf = None
     for r in results:
         trans, rot = pose_errors(r.pred_t, r.pred_q, r.true_t, r.true_q)
         odom = r.odometry()
         if odom is not None:
             t_seg, r_seg = kitti_segment_errors(pose_to_matrix(r.true_t, r.true_q), odom.matrices(), odometry_lengths_m)
+            steps = step_ratios(r.true_t, r.rel_t)
         else:
-            t_seg, r_seg = np.zeros(0), np.zeros(0)
+            t_seg, r_seg, steps = np.zeros(0), np.zeros(0), np.zeros(0)
         per_sequence[r.name] = {
             "pose": pose_metrics(trans, rot, thresholds),
-            "odometry": odometry_metrics(t_seg, r_seg, odometry_lengths_m),
+            "odometry": odometry_metrics(t_seg, r_seg, odometry_lengths_m, steps),
             "segmentation": segmentation_metrics(r.confusion, class_names),
             "timing": timing_metrics(r.ms),
         }
-        for key, value in (("trans", trans), ("rot", rot), ("t_seg", t_seg), ("r_seg", r_seg), ("ms", r.ms)):
+        for key, value in (("trans", trans), ("rot", rot), ("t_seg", t_seg), ("r_seg", r_seg), ("steps", steps), ("ms", r.ms)):
             if value is not None:
                 pooled[key].append(value)
         if r.confusion is not None:
@@ -328,7 +342,7 @@ def evaluate_sequences(
 
     overall = {
         "pose": pose_metrics(cat("trans"), cat("rot"), thresholds),
-        "odometry": odometry_metrics(cat("t_seg"), cat("r_seg"), odometry_lengths_m),
+        "odometry": odometry_metrics(cat("t_seg"), cat("r_seg"), odometry_lengths_m, cat("steps")),
         "segmentation": segmentation_metrics(total_conf, class_names),
         "timing": timing_metrics(cat("ms") if pooled["ms"] else None),
     }

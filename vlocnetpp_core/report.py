@@ -178,9 +178,9 @@ def format_report(report: dict, frames: dict[str, int] | None = None) -> str:
     acc_keys = [k for k in overall["pose"] if k.startswith("accuracy_")]
     headers = ["sequence", "frames", "median t [m]", "median R [deg]"]
     headers += [k.removeprefix("accuracy_").replace("_", "/") + " [%]" for k in acc_keys]
-    headers += ["VO t [%]", "VO R [deg/m]", *(["mIoU [%]", "pix acc [%]"] if has_seg else []), "ms/frame"]
+    headers += ["VO t [%]", "VO R [deg/m]", "VO scale", *(["mIoU [%]", "pix acc [%]"] if has_seg else []), "ms/frame"]
     frames = frames or {}
-    empty = {"odometry": {"translation_error_percent": None, "rotation_error_deg_per_m": None},
+    empty = {"odometry": {"translation_error_percent": None, "rotation_error_deg_per_m": None, "step_scale": None},
              "segmentation": {"miou": None, "pixel_accuracy": None}, "timing": {"mean_ms": None}}
 
     def row(name: str, part: dict, n: int | None) -> list[str]:
@@ -194,6 +194,7 @@ def format_report(report: dict, frames: dict[str, int] | None = None) -> str:
             *[_pct(pose.get(k)) for k in acc_keys],
             _num(odo["translation_error_percent"], ".2f"),
             _num(odo["rotation_error_deg_per_m"], ".3f"),
+            _num(odo.get("step_scale"), ".3f"),
             *([_pct(seg["miou"]), _pct(seg["pixel_accuracy"])] if has_seg else []),
             _num(tim["mean_ms"], ".1f"),
         ]
