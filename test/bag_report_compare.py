@@ -79,7 +79,8 @@ def pose_tolerances(frames: MatchedFrames, lengths_m: list[float], pose_atol: fl
     * odometry: a segment compares ``O_s^-1 O_e`` of the accumulated poses with the truth; its
       translation moves by at most ``theta * D + 2 sqrt(3) e`` (``D``: the largest distance between two
       odometry positions) and its rotation by ``2 theta``, each divided by the segment length, at
-      least the shortest one, and so does their mean over the segments;
+      least the shortest one, and so does their mean over the segments; a predicted step length moves by at
+      most ``2 sqrt(3) e``, so ``step_scale`` (a median of step ratios) by that over the shortest true step;
     * segmentation scores come from equal masks and the same labels: equal (tolerance 0);
       ``lengths_m`` follow from the ground truth alone: equal.
     """
@@ -89,9 +90,12 @@ def pose_tolerances(frames: MatchedFrames, lengths_m: list[float], pose_atol: fl
     odom = frames.odom_t[~np.isnan(frames.odom_t).any(axis=1)]
     diameter = float(np.linalg.norm(odom[:, None] - odom[None], axis=-1).max()) if len(odom) else 0.0
     shortest = min(lengths_m) if lengths_m else math.inf
+    steps = np.linalg.norm(np.diff(frames.true_t, axis=0), axis=1)
+    min_step = float(steps[steps >= 0.01].min()) if (steps >= 0.01).any() else math.inf  # metrics.step_ratios' pairs
     odometry = {
         "translation_error_percent": 100.0 * (theta * diameter + 2.0 * trans) / shortest,
         "rotation_error_deg_per_m": math.degrees(2.0 * theta + ACOS_ROUNDING_RAD) / shortest,
+        "step_scale": 2.0 * trans / min_step,
     }
     t_err, r_err = pose_errors(frames.pred_t, frames.pred_q, frames.true_t, frames.true_q)
     scopes = {"overall": np.arange(len(frames.stamps))} | {f"seq-{k:02d}": np.asarray(r) for k, r in enumerate(frames.sequences)}
