@@ -90,8 +90,9 @@ def pose_tolerances(frames: MatchedFrames, lengths_m: list[float], pose_atol: fl
     odom = frames.odom_t[~np.isnan(frames.odom_t).any(axis=1)]
     diameter = float(np.linalg.norm(odom[:, None] - odom[None], axis=-1).max()) if len(odom) else 0.0
     shortest = min(lengths_m) if lengths_m else math.inf
-    steps = np.linalg.norm(np.diff(frames.true_t, axis=0), axis=1)
-    min_step = float(steps[steps >= 0.01].min()) if (steps >= 0.01).any() else math.inf  # metrics.step_ratios' pairs
+    # the pairs metrics.step_ratios counts: consecutive frames of one sequence that moved at least 1 cm
+    steps = np.concatenate([np.zeros(0)] + [np.linalg.norm(np.diff(frames.true_t[r.start:r.stop], axis=0), axis=1) for r in frames.sequences])
+    min_step = float(steps[steps >= 0.01].min()) if (steps >= 0.01).any() else math.inf
     odometry = {
         "translation_error_percent": 100.0 * (theta * diameter + 2.0 * trans) / shortest,
         "rotation_error_deg_per_m": math.degrees(2.0 * theta + ACOS_ROUNDING_RAD) / shortest,
