@@ -10,6 +10,8 @@ written: better than retrieval; 0.54 m between the trained lanes, short of the 0
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -26,11 +28,16 @@ from vlocnetpp_core.synth import render_dataset
 
 
 @pytest.fixture(scope="module")
-def fresh_loop(tmp_path_factory):
+def fresh_loop_dir(tmp_path_factory) -> Path:
     """A fresh test loop of the campus (175 frames of a visit seed never used for training or validation)."""
     out = tmp_path_factory.mktemp("shipped") / "campus"
     render_dataset(out, scene="campus", seed=202, train_loops=0, test_loops=1, frames_per_loop=175, progress=False)
-    index = open_dataset(out, "deeploc", "test")
+    return out
+
+
+@pytest.fixture(scope="module")
+def fresh_loop(fresh_loop_dir):
+    index = open_dataset(fresh_loop_dir, "deeploc", "test")
     return [index.load(i) for i in range(len(index))]
 
 
@@ -85,3 +92,19 @@ def test_the_shipped_retrieval_baseline_is_computed_from_the_training_images(fre
     errors = [geometry.translation_error(ti, f.t) for ti, f in zip(t, fresh_loop, strict=True)]
     assert len({tuple(p) for p in t}) > len(fresh_loop) // 4  # it follows the loop, not one place
     assert float(np.median(errors)) < 3.0
+
+
+def test_odometry_gaps_prints_the_predicted_step_per_frame_gap(fresh_loop_dir):
+    """scripts/odometry_gaps.py on the fresh loop: one row per gap, true steps from the poses (0 for a frame paired
+    with itself), and the shipped odometry's mean step grows with the gap (docs/results.md, 2026-12-14: it tells
+    the gaps apart on average, not pair by pair)."""
+    script = Path(__file__).resolve().parents[1] / "scripts" / "odometry_gaps.py"
+    out = subprocess.run([sys.executable, str(script), "--checkpoint", str(shipped_checkpoint()), "--data", str(fresh_loop_dir),
+                          "--split", "test", "--frames", "40", "--max-gap", "2"], capture_output=True, text=True, check=True).stdout
+    rows = [line.strip("|").split("|") for line in out.splitlines() if line.startswith("| ") and line[2].isdigit()]
+    gaps = [int(r[0]) for r in rows]
+    true = [float(r[1]) for r in rows]
+    predicted = [float(r[2].split("+-")[0]) for r in rows]
+    assert gaps == [0, 1, 2]
+    assert true[0] == 0.0 and 0 < true[1] < true[2]
+    assert predicted[0] < predicted[1] < predicted[2]
