@@ -124,6 +124,26 @@ def test_stage_checkpoints_have_sidecar_and_calibration(stage_runs):
     assert meta["calibration"]["odometry_variance"] != list(DEFAULT_ODOMETRY_VARIANCE)
 
 
+def test_validation_counts_every_training_stride_and_calibrates_at_the_first(tiny, stage_runs):
+    """``validate`` averages its losses over the clips of every stride (a constant odometry step must not score well at
+    one spacing) and calibrates the covariances from the stride-1 clips only (the camera's own frame spacing)."""
+    from vlocnetpp_core.data import ClipDataset, make_transform, open_dataset
+    from vlocnetpp_core.losses import VLocNetLoss
+    from vlocnetpp_core.trainer import validate
+
+    index = open_dataset(tiny[0], None, "test")  # 1 loop of 10 frames: 9 clips at stride 1 (2 batches), 8 at stride 2 (1)
+    clips = [ClipDataset(index, 2, make_transform(False, (64, 48)), stride=s, depth=False, labels=False) for s in (1, 2)]
+    model = load_checkpoint(stage_runs["stl-vo"] / "last")[0]
+    criterion = VLocNetLoss(("vo",), depth=False)
+    one, calib_one = validate(model, criterion, clips[:1], "stl-vo", "cpu")
+    two, _ = validate(model, criterion, clips[1:], "stl-vo", "cpu")
+    both, calib_both = validate(model, criterion, clips, "stl-vo", "cpu")
+    assert both["x_vo"] == pytest.approx((2 * one["x_vo"] + two["x_vo"]) / 3)
+    assert both["x_vo"] != pytest.approx(one["x_vo"])
+    assert calib_both["odometry_variance"] == calib_one["odometry_variance"]
+    assert calib_both["source"] == "validation (stl-vo, 9 clips at frame stride 1)"
+
+
 def assert_second_stage_kept_the_trunk(first: Path, second: Path, own_stream: str) -> None:
     """The second pose stage has the first one's trunk (weights and BatchNorm statistics) and trained its own stream."""
     from vlocnetpp_core.checkpoint import read_checkpoint_tensors

@@ -107,7 +107,9 @@ class Trainer:
             raise UserError(f"{args.data}: no training clips of {args.clip_len} frames")
         self.val_clips = None
         if self.val_index is not None:
-            self.val_clips = ClipDataset(self.val_index, args.clip_len, make_transform(False, self.size), depth=seg, labels=seg)
+            # at every training stride: at one spacing a constant odometry step can score well (docs/results.md, 2026-12-14)
+            self.val_clips = [ClipDataset(self.val_index, args.clip_len, make_transform(False, self.size), stride=s, depth=seg, labels=seg)
+                              for s in sorted(args.frame_strides)]
         self.sampler = EpochSampler(len(self.train_clips), args.batch_size, args.seed, self.rank, self.world)
         epochs = 30.0 if args.epochs is None else args.epochs
         self.total = args.steps if args.steps is not None else int(math.ceil(epochs * self.sampler.batches_per_epoch))
@@ -311,34 +313,41 @@ def forward_stage(net, batch: dict, stage: str):
 
 
 @torch.no_grad()
-def validate(model, criterion, clips, stage: str, device) -> tuple[dict, dict]:
-    """Mean validation losses (eval mode) and the covariance calibration of pose and odometry errors."""
+def validate(model, criterion, clips: list, stage: str, device) -> tuple[dict, dict]:
+    """Mean validation losses (eval mode) over the ``ClipDataset`` of every training stride, smallest first, and the
+    covariance calibration of pose and odometry errors from the first (the camera's own frame spacing at stride 1).
+
+    Every stride counts: validated at one frame spacing, an odometry stream that predicts the same step for any
+    pair scores as well as one that measures the motion whenever that spacing is the mean of the training ones.
+    """
     from vlocnetpp_core import geometry
 
     model.eval()
-    loader = torch.utils.data.DataLoader(clips, batch_size=8, shuffle=False, num_workers=0)
     sums: dict[str, float] = {}
     n = 0
     pose_err, odo_err = [], []
-    for batch in loader:
-        batch = {k: v.to(device) for k, v in batch.items()}
-        outputs = forward_stage(model, batch, stage)
-        loss, parts = criterion(outputs, batch)
-        for k, v in {"loss": loss, **parts}.items():
-            sums[k] = sums.get(k, 0.0) + float(v)
-        n += 1
-        for i, o in enumerate(outputs):
-            if o.xyz is not None:
-                pose_err.append(_pose_residual(o.xyz, o.quat, batch["t"][:, i], batch["q"][:, i], geometry))
-            if i > 0 and o.rel_xyz is not None:
-                odo_err.append(_pose_residual(o.rel_xyz, o.rel_quat, batch["rel_t"][:, i], batch["rel_q"][:, i], geometry))
+    for k, stride_clips in enumerate(clips):
+        for batch in torch.utils.data.DataLoader(stride_clips, batch_size=8, shuffle=False, num_workers=0):
+            batch = {key: v.to(device) for key, v in batch.items()}
+            outputs = forward_stage(model, batch, stage)
+            loss, parts = criterion(outputs, batch)
+            for key, v in {"loss": loss, **parts}.items():
+                sums[key] = sums.get(key, 0.0) + float(v)
+            n += 1
+            if k:
+                continue
+            for i, o in enumerate(outputs):
+                if o.xyz is not None:
+                    pose_err.append(_pose_residual(o.xyz, o.quat, batch["t"][:, i], batch["q"][:, i], geometry))
+                if i > 0 and o.rel_xyz is not None:
+                    odo_err.append(_pose_residual(o.rel_xyz, o.rel_quat, batch["rel_t"][:, i], batch["rel_q"][:, i], geometry))
     model.train()
-    metrics = {k: v / max(n, 1) for k, v in sums.items()}
+    metrics = {key: v / max(n, 1) for key, v in sums.items()}
     calib = {
         "pose_variance": _variance(pose_err),
         "odometry_variance": _variance(odo_err),
         "frames": int(sum(len(e) for e in pose_err)),
-        "source": f"validation ({stage}, {len(clips)} clips)",
+        "source": f"validation ({stage}, {len(clips[0])} clips at frame stride {clips[0].stride})",
         "note": "per-axis variance of validation errors: x, y, z (m^2), rotation about x, y, z (rad^2); odometry per frame",
     }
     return metrics, calib
