@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from vlocnetpp_core.bag.evaluate_bag import MatchedFrames
-from vlocnetpp_core.metrics import DEFAULT_THRESHOLDS, accuracy_key, pose_errors
+from vlocnetpp_core.metrics import DEFAULT_THRESHOLDS, MIN_STEP_M, accuracy_key, pose_errors
 
 SCORED_PARTS = ("pose", "odometry", "segmentation")  # a bag holds no step times, so "timing" is left out
 # Rounding of an angle computed as acos of a float64 dot product or trace: near 1, acos(1 - d) ~ sqrt(2 d),
@@ -90,9 +90,10 @@ def pose_tolerances(frames: MatchedFrames, lengths_m: list[float], pose_atol: fl
     odom = frames.odom_t[~np.isnan(frames.odom_t).any(axis=1)]
     diameter = float(np.linalg.norm(odom[:, None] - odom[None], axis=-1).max()) if len(odom) else 0.0
     shortest = min(lengths_m) if lengths_m else math.inf
-    # the pairs metrics.step_ratios counts: consecutive frames of one sequence that moved at least 1 cm
+    # the pairs metrics.step_ratios counts: consecutive frames of one sequence that moved at least MIN_STEP_M
     steps = np.concatenate([np.zeros(0)] + [np.linalg.norm(np.diff(frames.true_t[r.start:r.stop], axis=0), axis=1) for r in frames.sequences])
-    min_step = float(steps[steps >= 0.01].min()) if (steps >= 0.01).any() else math.inf
+    moved = steps[steps >= MIN_STEP_M]
+    min_step = float(moved.min()) if len(moved) else math.inf
     odometry = {
         "translation_error_percent": 100.0 * (theta * diameter + 2.0 * trans) / shortest,
         "rotation_error_deg_per_m": math.degrees(2.0 * theta + ACOS_ROUNDING_RAD) / shortest,

@@ -111,7 +111,11 @@ def kitti_segment_errors(T_true: np.ndarray, T_pred: np.ndarray, lengths_m: Sequ
     return np.array(t_err), np.array(r_err)
 
 
-def step_ratios(true_t: np.ndarray, rel_t: np.ndarray, min_step_m: float = 0.01) -> np.ndarray:
+MIN_STEP_M = 0.01
+"""Frame pairs whose camera moved less than this (metres) have no step ratio: a standing camera's ratio is noise."""
+
+
+def step_ratios(true_t: np.ndarray, rel_t: np.ndarray, min_step_m: float = MIN_STEP_M) -> np.ndarray:
     """``(M,)`` predicted over true step length of every frame pair whose camera moved at least ``min_step_m``:
     ``|rel_t[k]| / |true_t[k] - true_t[k-1]|`` (``true_t (N, 3)`` world positions, ``rel_t (N, 3)`` the predicted
     ``T_{k-1}^{-1} T_k`` translations, row 0 ignored)."""
