@@ -37,7 +37,7 @@ def main() -> None:
     frames = [index.load(i, depth=False, labels=False) for i in first[:n]]
     images = torch.cat([image_tensor(resize_image(f.image, model.config.input_size)) for f in frames])
     t_wc = np.stack([f.t for f in frames])
-    features = model.odometry.res4(model.trunk((images - model.mean) / model.std))  # (n, C4, H/16, W/16)
+    features = model.step(images, tasks=("vo",))[0].taps["odo_res4"]  # each frame's Siamese Res4 (n, C4, H/16, W/16)
     pairs = n - args.max_gap
     print(f"{args.checkpoint} on {args.data} ({args.split}, frames {first[0]}..{first[0] + n - 1})")
     print("| gap [frames] | true step [m] | predicted step [m] | correlation within the gap |")
