@@ -315,7 +315,7 @@ def forward_stage(net, batch: dict, stage: str):
 @torch.no_grad()
 def validate(model, criterion, clips: list, stage: str, device) -> tuple[dict, dict]:
     """Mean validation losses (eval mode) over the ``ClipDataset`` of every training stride, smallest first, and the
-    covariance calibration of pose and odometry errors from the first (the camera's own frame spacing at stride 1).
+    covariance calibration of pose and odometry errors from the first alone (at stride 1: the camera's own frame spacing).
 
     Every stride counts: validated at one frame spacing, an odometry stream that predicts the same step for any
     pair scores as well as one that measures the motion whenever that spacing is the mean of the training ones.
