@@ -283,6 +283,24 @@ def test_mtl_assembled_without_steps_is_exactly_its_stages(tiny, stage_runs, tmp
                 torch.testing.assert_close(out.seg_logits, ref["stl-seg"].seg_logits, rtol=0, atol=1e-5)
 
 
+def test_an_assembled_network_takes_a_retrained_stream_from_a_later_init(tiny, stage_runs, tmp_path):
+    # an mtl checkpoint gives every stream; a later single-task init replaces its own stream (and only that)
+    from vlocnetpp_core.checkpoint import read_checkpoint_tensors
+    from vlocnetpp_core.model.stages import stream_of
+
+    data, config = tiny
+    inits = [a for stage in ("stl-loc", "stl-vo", "stl-seg") for a in ("--init", str(stage_runs[stage] / "last.safetensors"))]
+    train(data, config, tmp_path / "first", "mtl", 0, *inits)
+    train(data, config, tmp_path / "vo", "stl-vo", 2, "--init", str(stage_runs["stl-loc"] / "last.safetensors"), "--seed", "3")
+    train(data, config, tmp_path / "second", "mtl", 0, "--init", str(tmp_path / "first" / "last.safetensors"),
+          "--init", str(tmp_path / "vo" / "last.safetensors"))
+    first, vo, second = (read_checkpoint_tensors(tmp_path / name / "last")[0] for name in ("first", "vo", "second"))
+    odometry = [k for k in second if stream_of(k) == "odometry"]
+    assert odometry and all(torch.equal(second[k], vo[k]) for k in odometry)
+    assert any(not torch.equal(first[k], vo[k]) for k in odometry)  # the retrained stream differs from the first one's
+    assert all(torch.equal(second[k], first[k]) for k in second if stream_of(k) != "odometry")
+
+
 def test_a_cosine_run_anneals_each_step_and_a_resume_continues_its_curve(tiny, tmp_path):
     """--lr-end: the rate of every logged step follows the half cosine; resuming the finished run with the same
     flags keeps the saved phase, with more --steps it starts a new one at the resumed step."""

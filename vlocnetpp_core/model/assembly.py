@@ -5,8 +5,10 @@
 :data:`INIT_RULES` says what a checkpoint of stage ``source`` gives a run of stage ``run``:
 
 * ``"whole"`` (the default): every tensor whose name exists in the run's network;
-* ``"streams"`` (``mtl`` from several single-task checkpoints): each stream from the checkpoint of
-  the stage that trains it (:data:`STREAM_SOURCE`);
+* ``"streams"`` (``mtl`` from several checkpoints): each stream from the checkpoint of the stage that
+  trains it (:data:`STREAM_SOURCE`); an ``mtl`` checkpoint among them (an assembled or multitask network)
+  gives every stream, and a later single-task one replaces its own (e.g. the shipped model with a
+  retrained odometry stream: ``--init models/vlocnetpp_lite.safetensors --init runs/stl-vo/best.safetensors``);
 * ``"trunk"`` (one pose stage on the other: ``stl-loc`` on ``stl-vo``, ``stl-vo`` on ``stl-loc``): only
   the shared trunk, kept frozen (weights and BatchNorm statistics) so ``mtl`` can combine the two
   pose streams; the other stream is not carried (its head may differ, e.g. the global stream's with
@@ -51,7 +53,7 @@ def init_tensors(rule: str, source: str | None, tensors: dict[str, torch.Tensor]
     if rule == "trunk":
         return {k: v for k, v in tensors.items() if k.startswith("trunk.")}
     if rule == "streams":
-        return {k: v for k, v in tensors.items() if k in own and STREAM_SOURCE.get(stream_of(k)) == source}
+        return {k: v for k, v in tensors.items() if k in own and (source == "mtl" or STREAM_SOURCE.get(stream_of(k)) == source)}
     return {k: v for k, v in tensors.items() if k in own}
 
 
