@@ -195,3 +195,25 @@ def test_bf16_autocast_segmentation_decoder_passes_on_the_float32_gradients():
 
     for full, mixed in zip(input_grads(False), input_grads(True), strict=True):
         assert torch.nn.functional.cosine_similarity(full.flatten(), mixed.float().flatten(), dim=0) > 0.98  # measured 0.999+
+
+
+def test_a_training_clip_runs_the_odometry_res5_on_real_pairs_only():
+    # a first frame in training gives the identity without running Res5: its self-pair (zero motion) would
+    # otherwise feed half the running statistics of Res5's and the head's BatchNorms with clips of 2, and
+    # every evaluation then measured steps 1.6x too long (docs/results.md, 2026-12-15)
+    torch.manual_seed(4)
+    model = VLocNetPP(lite(input_size=(W, H)))
+    batch = random_clip_batch(2, 2, W, H, seed=4)
+    norms = [m for m in (*model.odometry.res5.modules(), *model.odometry.head.modules()) if isinstance(m, torch.nn.BatchNorm2d)]
+    model.train()
+    before = [int(m.num_batches_tracked) for m in norms]
+    with torch.no_grad():
+        first, second = model.forward_clip(batch["image"], batch["K"], tasks=("vo",))
+    model.eval()
+    assert norms and all(int(m.num_batches_tracked) == n + 1 for m, n in zip(norms, before, strict=True))  # one update: the real pair
+    torch.testing.assert_close(first.rel_xyz, torch.zeros(2, 3), rtol=0, atol=0)
+    torch.testing.assert_close(first.rel_quat, torch.tensor([[1.0, 0.0, 0.0, 0.0]] * 2), rtol=0, atol=0)
+    assert "odo_res5" in second.taps and "odo_res5" not in first.taps
+    with torch.no_grad():  # eval mode (streaming, ONNX): a first frame is still paired with itself
+        out, _ = model.step(batch["image"][:, 0], None, batch["K"][:, 0], tasks=("vo",))
+    assert "odo_res5" in out.taps and bool((out.rel_xyz != 0).any())

@@ -201,12 +201,21 @@ class VLocNetPP(nn.Module):
         return out, new
 
     def _odometry_step(self, res3: torch.Tensor, prev: StreamState, out: StepOutput, new: StreamState) -> None:
-        """Siamese Res4 of this frame (cached for the next), Res5 on ``prev ++ current``, relative pose."""
+        """Siamese Res4 of this frame (cached for the next), Res5 on ``prev ++ current``, relative pose.
+
+        A first frame (no ``prev.odo_res4``) pairs the frame with itself in eval mode (streaming, ONNX). In training it
+        gives the identity without running Res5: no loss reads it, and the self-pair's zero-motion statistics in the
+        running averages of Res5's and the head's BatchNorms (half of them with clips of 2) biased every evaluation
+        (steps 1.6x too long; docs/results.md, 2026-12-15)."""
         odo_res4 = self.odometry.res4(res3)
+        out.taps["odo_res4"] = new.odo_res4 = odo_res4
+        if prev.odo_res4 is None and self.training:
+            out.rel_xyz = odo_res4.new_zeros(odo_res4.shape[0], 3, dtype=self.odometry.head.fc1.weight.dtype)
+            out.rel_quat = out.rel_xyz.new_tensor([1.0, 0.0, 0.0, 0.0]).expand(odo_res4.shape[0], 4)
+            return
         prev_res4 = prev.odo_res4 if prev.odo_res4 is not None else odo_res4
         _check_state(prev_res4, odo_res4, "odo_res4")
         out.rel_xyz, out.rel_quat, out.taps["odo_res5"] = self.odometry(prev_res4, odo_res4)
-        out.taps["odo_res4"] = new.odo_res4 = odo_res4
 
     def _semantic_step(self, x: torch.Tensor, prev: StreamState, out: StepOutput, new: StreamState, K: torch.Tensor | None,
                        depth: torch.Tensor | None, warp_rel_pose: torch.Tensor | None) -> torch.Tensor:
