@@ -161,7 +161,7 @@ class VLocNetPP(nn.Module):
         tasks: Iterable[str] | None = None,
     ) -> tuple[StepOutput, StreamState]:
         """One frame. ``state=None`` is a first frame: every fusion with the previous frame uses
-        the current frame's own features (a static camera); odometry outputs are then meaningless.
+        the current frame's own features (a static camera); odometry outputs are then meaningless (the identity in training).
 
         Args:
             image: ``(B, 3, H, W)`` RGB in ``[0, 1]``.
