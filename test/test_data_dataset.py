@@ -75,6 +75,30 @@ def test_relative_poses_of_every_clip_compose_its_frames_poses(deeploc_index, st
             np.testing.assert_allclose(s["rel_q"][k].numpy(), rq, atol=1e-6)
 
 
+def test_mirrored_clips_carry_the_relative_poses_of_their_mirrored_frames(deeploc_index):
+    """With the flip (stl-vo's training clips) half the clips are mirrored left-right; the relative poses of every
+    clip are those its transformed frames' poses compose, so a mirrored clip turns the other way (yaw negated)."""
+    plain = ClipDataset(deeploc_index, 3, make_transform(False, (64, 48)))
+    mirrored = ClipDataset(deeploc_index, 3, make_transform(True, (64, 48), scale=(1.0, 1.0), brightness=0, contrast=0,
+                                                            saturation=0, flip=True))
+    torch.manual_seed(0)
+    seen = set()
+    for i in range(len(plain)):
+        p, m = plain[i], mirrored[i]
+        flipped = bool(torch.equal(m["image"], p["image"].flip(-1)))
+        assert flipped or torch.equal(m["image"], p["image"])
+        seen.add(flipped)
+        for k in (1, 2):
+            rt, rq = geometry.relative_pose(m["t"][k - 1].double().numpy(), m["q"][k - 1].double().numpy(),
+                                            m["t"][k].double().numpy(), m["q"][k].double().numpy())
+            np.testing.assert_allclose(m["rel_t"][k].numpy(), rt, atol=1e-5)
+            np.testing.assert_allclose(m["rel_q"][k].numpy(), rq, atol=1e-5)
+            sign = -1.0 if flipped else 1.0  # yaw (camera y) and roll (z) change sign, pitch (x) does not
+            np.testing.assert_allclose(m["rel_q"][k].numpy(), p["rel_q"][k].numpy() * [1, 1, sign, sign], atol=1e-6)
+            assert abs(p["rel_q"][k][2]) > 1e-3  # the trajectory turns, so the sign is seen
+    assert seen == {True, False}
+
+
 def test_absent_depth_and_labels_are_filled(tmp_path):
     write_sevenscenes(tmp_path, {1: 3}, train=[1], test=[1])
     (tmp_path / "seq-01/frame-000001.depth.png").unlink()

@@ -21,6 +21,7 @@ def test_model_info_json_counts_every_stream(capsys):
     assert info["params_trained_per_stage"]["mtl"] == info["params_total"]
     assert info["params_trained_per_stage"]["stl-loc"] == info["params_per_stream"]["global"]
     assert info["global_stream"] == {"downsample": 2, "pooling": "flatten", "anchors": 256, "rotation_anchors": 32, "res5_size": [2, 4]}
+    assert info["odometry_stream"] == {"pooling": "flatten", "res5_size": [4, 7]}
 
 
 def test_model_info_table_and_yaml_path(tmp_path, capsys):
@@ -32,6 +33,7 @@ def test_model_info_table_and_yaml_path(tmp_path, capsys):
     assert "'no-fusion'" in out and "160x96" in out and "semantic_fusion=off" in out
     assert "Res3 map pooled by 2" in out and "3x2 Res5c map is flattened" in out
     assert "256 scored anchors plus offsets" in out and "32 scored anchor rotations" in out
+    assert "odometry stream: its 5x3 Res5 map of the two frames is flattened" in out
     assert any(line.split() == ["fusion", "0"] for line in out.splitlines())
 
 

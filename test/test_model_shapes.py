@@ -60,7 +60,7 @@ def check_step_shapes(cfg: ModelConfig, width: int, height: int, batch: int = 2)
 @pytest.mark.parametrize("size", [(224, 128), (208, 112), (160, 48)])
 @pytest.mark.parametrize("pooling", ["flatten", "average"])
 def test_lite_shapes(size, pooling):
-    check_step_shapes(lite(input_size=size, global_pose_pooling=pooling), *size)
+    check_step_shapes(lite(input_size=size, global_pose_pooling=pooling, odometry_pose_pooling=pooling), *size)
 
 
 @pytest.mark.parametrize("size", [(96, 64), (80, 48)])
@@ -71,7 +71,7 @@ def test_paper_shapes_at_small_sizes(size, global_downsample):
 
 def test_lite_is_a_few_million_parameters():
     total = sum(params_per_stream(VLocNetPP(load_model_config("lite"))).values())
-    assert 1e6 < total < 6e6
+    assert 1e6 < total < 1e7
 
 
 def test_global_downsample_pools_res3_for_the_global_stream_only():
@@ -257,6 +257,9 @@ def test_bad_inputs_are_clear_errors():
 
 
 def test_config_input_size_is_only_a_default_with_average_pooling():
-    check_step_shapes(lite(input_size=(64, 32), global_pose_pooling="average"), 128, 64, batch=1)
-    with pytest.raises(ValueError, match="input_size"), torch.inference_mode():
-        VLocNetPP(lite(input_size=(64, 32))).eval().step(torch.rand(1, 3, 64, 128), None, intrinsics(1, 128, 64))
+    check_step_shapes(lite(input_size=(64, 32), global_pose_pooling="average", odometry_pose_pooling="average"), 128, 64, batch=1)
+    for flattened in ("global_pose_pooling", "odometry_pose_pooling"):  # either flattened head fixes the input size
+        other = {"global_pose_pooling": "odometry_pose_pooling", "odometry_pose_pooling": "global_pose_pooling"}[flattened]
+        with pytest.raises(ValueError, match="input_size"), torch.inference_mode():
+            VLocNetPP(lite(input_size=(64, 32), **{flattened: "flatten", other: "average"})).eval().step(
+                torch.rand(1, 3, 64, 128), None, intrinsics(1, 128, 64))

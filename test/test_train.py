@@ -301,6 +301,32 @@ def test_an_assembled_network_takes_a_retrained_stream_from_a_later_init(tiny, s
     assert all(torch.equal(second[k], first[k]) for k in second if stream_of(k) != "odometry")
 
 
+def test_a_retrained_stream_of_another_head_shape_replaces_the_assembled_one(tiny, stage_runs, tmp_path, capsys):
+    # the shipped model's odometry head retrained with the other pooling (average <-> flatten: fc1 of another shape)
+    # and swapped in: the assembled checkpoint's own odometry head is replaced, so its shape does not matter
+    from vlocnetpp_core.checkpoint import read_checkpoint_tensors
+    from vlocnetpp_core.model.stages import stream_of
+
+    data, config = tiny
+    cfg = yaml.safe_load(config.read_text())
+    cfg["odometry_pose_pooling"] = {"flatten": "average"}.get(cfg.get("odometry_pose_pooling"), "flatten")
+    other = tmp_path / "other.yaml"
+    other.write_text(yaml.safe_dump(cfg))
+    inits = [a for stage in ("stl-loc", "stl-vo", "stl-seg") for a in ("--init", str(stage_runs[stage] / "last.safetensors"))]
+    train(data, config, tmp_path / "first", "mtl", 0, *inits)
+    train(data, other, tmp_path / "vo", "stl-vo", 2, "--init", str(stage_runs["stl-loc"] / "last.safetensors"))
+    first_ckpt = str(tmp_path / "first" / "last.safetensors")
+    train(data, other, tmp_path / "second", "mtl", 0, "--init", first_ckpt, "--init", str(tmp_path / "vo" / "last.safetensors"))
+    first, vo, second = (read_checkpoint_tensors(tmp_path / name / "last")[0] for name in ("first", "vo", "second"))
+    assert first["odometry.head.fc1.weight"].shape != second["odometry.head.fc1.weight"].shape
+    assert all(torch.equal(second[k], vo[k]) for k in second if stream_of(k) == "odometry")
+    assert all(torch.equal(second[k], first[k]) for k in second if stream_of(k) != "odometry")
+    third = ["train", "--config", str(other), "--data", str(data), "--stage", "mtl", "--out", str(tmp_path / "third"), "--steps", "0",
+             "--init", first_ckpt, "--no-progress"]
+    assert cli(third) == 2  # without the retrained stream the assembled one cannot fit the other head
+    assert "do not match this model config" in capsys.readouterr().err
+
+
 def test_a_cosine_run_anneals_each_step_and_a_resume_continues_its_curve(tiny, tmp_path):
     """--lr-end: the rate of every logged step follows the half cosine; resuming the finished run with the same
     flags keeps the saved phase, with more --steps it starts a new one at the resumed step."""
@@ -480,3 +506,20 @@ def test_pose_only_trains_without_labels_or_depth(unlabelled, tmp_path, capsys):
     assert report["overall"]["odometry"]["translation_error_percent"] is not None and "baseline" in report
     assert "segmentation" not in report["overall"] and "mIoU" not in printed and "retrieval" in printed
     assert "segmentation: none: the model has no semantic stream" in printed and "not trained for" not in printed
+
+
+def test_only_the_odometry_stage_mirrors_its_training_clips(tiny, tmp_path):
+    # stl-vo's clips are flipped left-right half the time (relative poses mirrored with them); the stages that learn
+    # a global pose never see a mirrored world, and stl-seg stays as measured
+    from vlocnetpp_core.cli import build_parser
+    from vlocnetpp_core.data.transforms import HorizontalFlip
+    from vlocnetpp_core.trainer import Trainer
+
+    data, config = tiny
+    flips = {}
+    for stage in ("stl-loc", "stl-vo", "stl-seg", "mtl"):
+        args = ["train", "--config", str(config), "--data", str(data), "--stage", stage, "--out", str(tmp_path / stage),
+                "--steps", "1", "--batch-size", "2", "--clip-len", "2", "--workers", "0", "--no-progress", "--threads", "1"]
+        trainer = Trainer(build_parser("train").parse_args(args))
+        flips[stage] = [any(isinstance(t, HorizontalFlip) for t in clips.transform.transforms) for clips in trainer.train_clips.datasets]
+    assert flips == {"stl-loc": [False], "stl-vo": [True], "stl-seg": [False], "mtl": [False]}

@@ -16,23 +16,30 @@ from vlocnetpp_core.model.assembly import init_rule, init_tensors
 
 
 def load_inits(model, criterion, paths: list[str], stage: str, log) -> list[dict]:
-    """Initialise from checkpoints. For ``mtl`` each stream is taken from the checkpoint of its stage."""
+    """Initialise from checkpoints. For ``mtl`` each stream is taken from the checkpoint of its stage.
+
+    A tensor that a later checkpoint gives too is taken from the later one, and only the tensors
+    taken must fit this model config: an ``mtl`` checkpoint whose odometry head has another shape can
+    give every other stream when a later ``stl-vo`` checkpoint gives the odometry."""
     from vlocnetpp_core.checkpoint import read_checkpoint_tensors
     from vlocnetpp_core.train_state import load_criterion_weights
 
-    sources = []
-    loaded: dict[str, torch.Tensor] = {}
+    own = model.state_dict()
+    picked = []
     for path in paths:
         tensors, meta = read_checkpoint_tensors(path)
         src_stage = meta.get("training", {}).get("stage")
-        sources.append({"path": str(path), "stage": src_stage})
-        own = model.state_dict()
-        keep = init_tensors(init_rule(stage, src_stage, len(paths)), src_stage, tensors, own)
+        picked.append((path, src_stage, init_tensors(init_rule(stage, src_stage, len(paths)), src_stage, tensors, own)))
+    sources, loaded = [], {}
+    for i, (path, src_stage, keep) in enumerate(picked):
+        later = set().union(*(k for _, _, k in picked[i + 1:]))
+        keep = {k: v for k, v in keep.items() if k not in later}
         bad = [k for k, v in keep.items() if v.shape != own[k].shape]
         if bad:
             raise UserError(f"{path}: {len(bad)} tensors do not match this model config (e.g. {bad[0]}); was it trained with another --config?")
         model.load_state_dict({k: v.to(own[k].dtype) for k, v in keep.items()}, strict=False)
         loaded.update(keep)
+        sources.append({"path": str(path), "stage": src_stage})
         crit = load_criterion_weights(Path(path).parent)
         if crit:
             own_c = criterion.state_dict()

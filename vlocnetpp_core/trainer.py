@@ -25,7 +25,7 @@ from vlocnetpp_core.errors import UserError
 from vlocnetpp_core.losses import selection_score
 from vlocnetpp_core.lr_schedule import LearningRatePhase
 from vlocnetpp_core.model.assembly import builds_semantic_fusion, frozen_trunk
-from vlocnetpp_core.model.stages import stage_tasks
+from vlocnetpp_core.model.stages import mirrors_clips, stage_tasks
 from vlocnetpp_core.model.vlocnet import StepOutput
 from vlocnetpp_core.threads import use_threads
 from vlocnetpp_core.train_data import EpochSampler, SeededClips, split_validation, training_clips
@@ -99,7 +99,7 @@ class Trainer:
         self.crop_scale = args.crop_scale if args.crop_scale is not None else DEFAULT_CROP_SCALE.get(args.stage, 1.0)
         if not (math.isfinite(self.crop_scale) and self.crop_scale >= 1.0):
             raise UserError(f"--crop-scale must be >= 1, got {self.crop_scale}")
-        transform = make_transform(True, self.size, scale=(1.0, self.crop_scale))
+        transform = make_transform(True, self.size, scale=(1.0, self.crop_scale), flip=mirrors_clips(self.tasks))
         cache_size = (round(self.size[0] * self.crop_scale), round(self.size[1] * self.crop_scale)) if args.steps != 0 else None
         seg = "seg" in self.tasks  # depth and labels are decoded only for a run that trains segmentation
         self.train_clips = training_clips(self.train_index, args.clip_len, transform, args.frame_strides, seg, cache_size, self.log)

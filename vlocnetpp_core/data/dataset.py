@@ -9,7 +9,7 @@ import torch
 
 from vlocnetpp_core import geometry
 from vlocnetpp_core.classes import IGNORE_INDEX
-from vlocnetpp_core.data.sample import DatasetIndex, Frame
+from vlocnetpp_core.data.sample import DatasetIndex, Frame, mirror_pose
 from vlocnetpp_core.errors import DataError, UserError
 from vlocnetpp_core.intrinsics import Intrinsics
 
@@ -124,10 +124,11 @@ class ClipDataset(torch.utils.data.Dataset):
 def clip_to_tensors(frames: list[Frame], indices: list[int], rel: tuple[np.ndarray, np.ndarray], depth: bool = True,
                     labels: bool = True) -> dict[str, torch.Tensor]:
     """The tensor dict of :class:`ClipDataset` for already transformed ``frames`` and their relative poses ``rel``
-    (``rel_t (T, 3)``, ``rel_q (T, 4)``: :meth:`ClipDataset._relative_poses`); ``depth`` / ``labels``: with those keys."""
+    (``rel_t (T, 3)``, ``rel_q (T, 4)``: :meth:`ClipDataset._relative_poses`, mirrored here with mirrored frames);
+    ``depth`` / ``labels``: with those keys."""
     t = np.stack([f.t for f in frames])
     q = np.stack([f.q for f in frames])
-    rel_t, rel_q = rel
+    rel_t, rel_q = mirror_pose(*rel) if frames[0].mirrored else rel
     h, w = frames[0].image.shape[:2]
     for f in frames:
         if f.image.shape[:2] != (h, w):

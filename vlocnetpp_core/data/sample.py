@@ -30,7 +30,8 @@ class Frame:
     ``image (H, W, 3) uint8 RGB``; pose ``T_wc``: ``t (3,) float64`` metres, ``q (4,) float64``
     ``(w, x, y, z)`` with ``w >= 0``; ``depth (H, W) float32`` metres (0 = invalid) or None;
     ``labels (H, W) uint8`` class ids 0..9 (255 = ignore) or None; ``intrinsics`` at this image
-    size; ``stamp`` seconds; ``sequence`` id; ``frame_id`` a name for humans (file stem).
+    size; ``stamp`` seconds; ``sequence`` id; ``frame_id`` a name for humans (file stem); ``mirrored``:
+    flipped left-right with its pose in the mirrored world (``transforms.flip_frame``).
     """
 
     image: np.ndarray
@@ -42,6 +43,14 @@ class Frame:
     stamp: float
     sequence: int
     frame_id: str
+    mirrored: bool = False
+
+
+def mirror_pose(t: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A pose conjugated by ``M = diag(-1, 1, 1)`` (the left-right mirror of the optical frame): ``t (..., 3)``
+    -> ``(-x, y, z)``, ``q (..., 4)`` ``(w, x, y, z)`` -> ``(w, x, -y, -z)``. The same map for a camera pose in
+    a mirrored world and for a relative pose between two mirrored frames (yaw and roll change sign)."""
+    return t * np.array([-1.0, 1.0, 1.0]), q * np.array([1.0, 1.0, -1.0, -1.0])
 
 
 @dataclass(frozen=True)

@@ -11,8 +11,8 @@ valid and invalid depth are never blended), so evaluation and the node see the s
 Horizontal flip: a mirrored image has no rigid camera pose in the real world. :class:`HorizontalFlip`
 mirrors the world too (poses conjugated by ``M = diag(-1, 1, 1)``), which keeps relative poses,
 depth and intrinsics consistent (warping stays exact) but places the camera in a mirrored map, so
-global-pose targets become wrong. Only use it for segmentation-only training (``make_transform(...,
-flip=True)``).
+global-pose targets become wrong. Only use it for training that reads no global pose (``make_transform(...,
+flip=True)``): the trainer mirrors the clips of ``stl-vo`` (relative poses, mirrored with the frames, stay exact).
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from collections.abc import Sequence
 import cv2
 import numpy as np
 
-from vlocnetpp_core.data.sample import Frame
+from vlocnetpp_core.data.sample import Frame, mirror_pose
 from vlocnetpp_core.preprocess import resize_image, resize_nearest
 
 Clip = list[Frame]
@@ -65,15 +65,16 @@ def crop_frame(frame: Frame, x0: int, y0: int, width: int, height: int) -> Frame
 
 def flip_frame(frame: Frame) -> Frame:
     """Mirror left-right; the pose is conjugated by ``diag(-1, 1, 1)`` (a mirrored world, see module doc)."""
-    w, x, y, z = frame.q
+    t, q = mirror_pose(frame.t, frame.q)
     return dataclasses.replace(
         frame,
         image=np.ascontiguousarray(frame.image[:, ::-1]),
         depth=None if frame.depth is None else np.ascontiguousarray(frame.depth[:, ::-1]),
         labels=None if frame.labels is None else np.ascontiguousarray(frame.labels[:, ::-1]),
         intrinsics=frame.intrinsics.flipped_horizontally(),
-        t=frame.t * np.array([-1.0, 1.0, 1.0]),
-        q=np.array([w, x, -y, -z]),
+        t=t,
+        q=q,
+        mirrored=not frame.mirrored,
     )
 
 
@@ -177,8 +178,8 @@ def make_transform(
     for 16:9 cameras and the 16:9-ish input sizes of the configs is a distortion of a few percent
     that the intrinsics absorb). Train: resize to ``size`` times a random factor in ``scale``,
     random crop (the paper's random-crop training; ``scale=(1, 1)``: none, the whole image as at
-    test time), photometric jitter, and a horizontal flip when ``flip`` (segmentation-only
-    training: it breaks global poses).
+    test time), photometric jitter, and a horizontal flip of half the clips when ``flip`` (training
+    that reads no global pose: it breaks global poses).
     """
     size = (int(size[0]), int(size[1]))
     if not train:

@@ -41,7 +41,7 @@ class ModelConfig:
     are not silently switched off); the ``semantic_*``, ``num_classes`` and ``depth_*`` sizes are
     unused.
 
-    Four departures from the paper, all off by default (``lite`` uses them; ablation in
+    Five departures from the paper, all off by default (``lite`` uses them; ablation in
     docs/results.md): ``global_downsample`` average-pools the trunk's Res3 map by this factor before
     the global stream's Res4, so the global stream runs at a lower resolution than the trunk, the
     odometry stream and the semantic stream (whose Res5c map is pooled by the same factor for the
@@ -53,7 +53,9 @@ class ModelConfig:
     head score ``N`` anchor positions (k-means of the training positions) and regress an offset
     from each: the position is the softmax-weighted sum of ``anchor + offset``;
     ``global_rotation_anchors: R`` likewise for the rotation (0: fc3 regresses the quaternion): ``R``
-    anchor rotations (k-means of the training quaternions) scored, each turned by a residual rotation.
+    anchor rotations (k-means of the training quaternions) scored, each turned by a residual rotation;
+    ``odometry_pose_pooling: flatten`` likewise feeds the odometry stream's whole Res5 map into its fc1:
+    where in the image the two frames' features differ is what the motion is.
     """
 
     name: str = "paper"
@@ -80,6 +82,7 @@ class ModelConfig:
     global_pose_pooling: str = "average"  # "average" (paper: global average pooling) or "flatten" (whole Res5c map into fc1)
     global_pose_anchors: int = 0  # position anchors of the global pose head (0: the paper's direct regression)
     global_rotation_anchors: int = 0  # rotation anchors of the global pose head (0: the paper's direct regression)
+    odometry_pose_pooling: str = "average"  # "average" (paper) or "flatten" (the odometry's whole Res5 map into fc1)
 
     def __post_init__(self) -> None:
         problems = self.problems()
@@ -110,8 +113,9 @@ class ModelConfig:
         for key in ("global_pose_anchors", "global_rotation_anchors"):
             if getattr(self, key) < 0:
                 out.append(f"{key} must be >= 0 (0: the paper's direct regression), got {getattr(self, key)}")
-        if self.global_pose_pooling not in POSE_POOLINGS:
-            out.append(f"global_pose_pooling must be one of {list(POSE_POOLINGS)}, got {self.global_pose_pooling!r}")
+        for key in ("global_pose_pooling", "odometry_pose_pooling"):
+            if getattr(self, key) not in POSE_POOLINGS:
+                out.append(f"{key} must be one of {list(POSE_POOLINGS)}, got {getattr(self, key)!r}")
         needs_semantics = [k for k in ("warping", "semantic_fusion") if getattr(self, k)]
         if not self.semantic_stream and needs_semantics:
             out.append(f"semantic_stream is false (a pose-only network) but {' and '.join(needs_semantics)} "
@@ -136,6 +140,12 @@ class ModelConfig:
         w, h = self.input_size
         f = 32 * self.global_downsample
         return -(-h // f), -(-w // f)
+
+    @property
+    def odometry_res5_size(self) -> tuple[int, int]:
+        """``(h, w)`` of the odometry stream's Res5 map at ``input_size``: stride 32 (the trunk's full resolution)."""
+        w, h = self.input_size
+        return -(-h // 32), -(-w // 32)
 
     def res5_dilations(self) -> tuple[int, ...]:
         """Dilation of the parallel branch of each semantic Res5 block (the list is repeated if short)."""

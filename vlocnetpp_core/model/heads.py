@@ -92,8 +92,8 @@ class PoseHead(nn.Module):
         if self.flatten_size is None:
             h = self.norm(x).mean(dim=(2, 3))
         elif tuple(x.shape[-2:]) != self.flatten_size:
-            raise ValueError(f"this pose head flattens a {self.flatten_size[1]}x{self.flatten_size[0]} Res5 map (global_pose_pooling: "
-                             f"flatten fixes the model config's input_size) but got {x.shape[-1]}x{x.shape[-2]}: feed images "
+            raise ValueError(f"this pose head flattens a {self.flatten_size[1]}x{self.flatten_size[0]} Res5 map (a pose_pooling "
+                             f"of flatten fixes the model config's input_size) but got {x.shape[-1]}x{x.shape[-2]}: feed images "
                              "of the config's input_size")
         else:
             h = self.norm(x).flatten(1)

@@ -31,6 +31,7 @@ def model_info(config_name: str) -> dict[str, Any]:
         "global_stream": {"downsample": config.global_downsample, "pooling": config.global_pose_pooling,
                           "anchors": config.global_pose_anchors, "rotation_anchors": config.global_rotation_anchors,
                           "res5_size": list(config.global_res5_size)},
+        "odometry_stream": {"pooling": config.odometry_pose_pooling, "res5_size": list(config.odometry_res5_size)},
         "tasks": list(config.tasks),
         "num_classes": config.num_classes if config.semantic_stream else 0,
     }
@@ -52,7 +53,7 @@ def format_table(info: dict[str, Any]) -> str:
     classes = f"{info['num_classes']} classes" if info["num_classes"] else "pose only (no semantic stream)"
     lines = [f"model config {info['config']!r}: input {w}x{h} (width x height), {classes}",
              "switches: " + ", ".join(f"{k}={'on' if v else 'off'}" for k, v in info["switches"].items()),
-             _global_stream_line(info["global_stream"]), "",
+             _global_stream_line(info["global_stream"]), _odometry_stream_line(info["odometry_stream"]), "",
              f"{'stream':<12}{'parameters':>14}"]
     lines += [f"{name:<12}{n:>14,}" for name, n in info["params_per_stream"].items()]
     lines += [f"{'total':<12}{info['params_total']:>14,}", "", f"{'stage':<12}{'trained':>14}"]
@@ -70,6 +71,13 @@ def _global_stream_line(g: dict[str, Any]) -> str:
     quat = ("fc3 regresses the rotation (the paper)" if not g["rotation_anchors"] else
             f"the rotation is {g['rotation_anchors']} scored anchor rotations each turned by a residual (a departure from the paper)")
     return f"global stream: reads the trunk's Res3 map {res3}; its {w}x{h} Res5c map is {head} into fc1; {xyz}; {quat}"
+
+
+def _odometry_stream_line(o: dict[str, Any]) -> str:
+    """One line on the odometry head, naming the departure from the paper."""
+    h, w = o["res5_size"]
+    head = "averaged (the paper)" if o["pooling"] == "average" else "flattened (a departure from the paper)"
+    return f"odometry stream: its {w}x{h} Res5 map of the two frames is {head} into fc1"
 
 
 def run(args: argparse.Namespace) -> int:

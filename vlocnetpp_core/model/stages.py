@@ -77,6 +77,17 @@ def stage_tasks(stage: str, model_tasks: Iterable[str] = TASKS) -> tuple[str, ..
     return tasks
 
 
+def mirrors_clips(tasks: Iterable[str]) -> bool:
+    """Whether a run's training clips are mirrored left-right half the time (``transforms.HorizontalFlip``): a run
+    that trains odometry and no global pose (``stl-vo``). A mirrored clip's relative poses are exact, mirrored with
+    its frames (yaw and roll change sign), so the stream sees every turn both ways and a constant turn gains
+    nothing: one of two flattened-head runs without it stuck at a constant rotation, no mirrored run did
+    (docs/results.md, 2026-12-16). Its absolute poses lie in a mirrored world that the global stream must not
+    learn. ``stl-seg`` is left as measured, unmirrored."""
+    tasks = set(tasks)
+    return "vo" in tasks and "loc" not in tasks
+
+
 def is_trained_in(name: str, stage: str) -> bool:
     """Whether ``stage`` trains the parameter ``name``."""
     _check_stage(stage)

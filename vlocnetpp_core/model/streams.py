@@ -48,7 +48,8 @@ class OdometryStream(nn.Module):
         c = cfg.stage_channels
         self.res4 = make_stage(c[1], cfg.widths[2], c[2], cfg.depths[2], stride=2)
         self.res5 = make_stage(2 * c[2], cfg.widths[3], c[3], cfg.depths[3], stride=2)
-        self.head = PoseHead(c[3], cfg.fc_width, cfg.dropout)
+        flatten = cfg.odometry_res5_size if cfg.odometry_pose_pooling == "flatten" else None
+        self.head = PoseHead(c[3], cfg.fc_width, cfg.dropout, flatten)
 
     def forward(self, prev_res4: torch.Tensor, res4: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """``(B, C4, h, w)`` twice -> ``rel_xyz (B, 3)``, ``rel_quat (B, 4)``, Res5 output."""
