@@ -137,15 +137,17 @@ class ModelConfig:
     def global_res5_size(self) -> tuple[int, int]:
         """``(h, w)`` of the global stream's Res5 map at ``input_size``: stride ``32 * global_downsample``
         (every stride-2 layer and the pooling round up)."""
-        w, h = self.input_size
-        f = 32 * self.global_downsample
-        return -(-h // f), -(-w // f)
+        return self._map_size(32 * self.global_downsample)
 
     @property
     def odometry_res5_size(self) -> tuple[int, int]:
         """``(h, w)`` of the odometry stream's Res5 map at ``input_size``: stride 32 (the trunk's full resolution)."""
+        return self._map_size(32)
+
+    def _map_size(self, stride: int) -> tuple[int, int]:
+        """``(h, w)`` of a map at ``stride`` of ``input_size`` (every stride-2 layer and pooling rounds up)."""
         w, h = self.input_size
-        return -(-h // 32), -(-w // 32)
+        return -(-h // stride), -(-w // stride)
 
     def res5_dilations(self) -> tuple[int, ...]:
         """Dilation of the parallel branch of each semantic Res5 block (the list is repeated if short)."""

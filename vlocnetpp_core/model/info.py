@@ -61,11 +61,14 @@ def format_table(info: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+POOLING_WORDS = {"average": "averaged (the paper)", "flatten": "flattened (a departure from the paper)"}
+
+
 def _global_stream_line(g: dict[str, Any]) -> str:
     """One line on the global stream's resolution and head, naming the departures from the paper."""
     h, w = g["res5_size"]
     res3 = "as is (the paper)" if g["downsample"] == 1 else f"pooled by {g['downsample']} (a departure from the paper)"
-    head = "averaged (the paper)" if g["pooling"] == "average" else "flattened (a departure from the paper)"
+    head = POOLING_WORDS[g["pooling"]]
     xyz = ("fc2 regresses the position (the paper)" if not g["anchors"] else
            f"the position is {g['anchors']} scored anchors plus offsets (a departure from the paper)")
     quat = ("fc3 regresses the rotation (the paper)" if not g["rotation_anchors"] else
@@ -76,8 +79,7 @@ def _global_stream_line(g: dict[str, Any]) -> str:
 def _odometry_stream_line(o: dict[str, Any]) -> str:
     """One line on the odometry head, naming the departure from the paper."""
     h, w = o["res5_size"]
-    head = "averaged (the paper)" if o["pooling"] == "average" else "flattened (a departure from the paper)"
-    return f"odometry stream: its {w}x{h} Res5 map of the two frames is {head} into fc1"
+    return f"odometry stream: its {w}x{h} Res5 map of the two frames is {POOLING_WORDS[o['pooling']]} into fc1"
 
 
 def run(args: argparse.Namespace) -> int:
