@@ -197,14 +197,15 @@ def test_the_shipped_recipes_give_valid_train_commands(name, tmp_path):
     assert recipe.export["stage"] == recipe.stages[-1].name
 
 
-def test_the_shipped_trunk_config_is_lite_with_the_direct_pose_head():
-    """config/recipes/lite_trunk.yaml (the shipped recipe's trunk stage) differs from lite only in its name and
-    position and rotation anchors, so the trunk it learns fits the lite network the recipe exports."""
+@pytest.mark.parametrize("config", ["lite", "lite_pose"])
+def test_the_recipes_trunk_configs_are_their_model_with_the_direct_pose_head(config):
+    """config/recipes/CONFIG_trunk.yaml (the trunk stage of shipped.yaml and own_robot.yaml) differs from CONFIG only in
+    its name and position and rotation anchors, so the trunk it learns fits the network the recipe exports."""
     from conftest import REPO
 
-    lite = load_model_config("lite").to_dict()
-    trunk = load_model_config(str(REPO / "config" / "recipes" / "lite_trunk.yaml")).to_dict()
-    assert {k for k in lite if lite[k] != trunk[k]} == {"name", "global_pose_anchors", "global_rotation_anchors"}
+    model = load_model_config(config).to_dict()
+    trunk = load_model_config(str(REPO / "config" / "recipes" / f"{config}_trunk.yaml")).to_dict()
+    assert {k for k in model if model[k] != trunk[k]} == {"name", "global_pose_anchors", "global_rotation_anchors"}
     assert trunk["global_pose_anchors"] == trunk["global_rotation_anchors"] == 0
 
 
