@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -11,6 +12,13 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
+
+
+def ctrl_c_interrupts() -> None:
+    """``preexec_fn`` for a child the test stops with SIGINT: the default disposition, so Python's Ctrl-C handler is
+    installed even when the suite runs as a shell's background job (``&`` starts it with SIGINT ignored, and an ignored
+    signal stays ignored across exec)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
 def _colcon() -> str:

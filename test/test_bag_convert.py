@@ -13,6 +13,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from conftest import ctrl_c_interrupts
 from data_fixtures import K_SMALL, trajectory, write_deeploc_split, write_sevenscenes
 from mcap.reader import make_reader
 from rosbags.highlevel import AnyReader
@@ -254,7 +255,7 @@ def long_dataset(tmp_path_factory) -> Path:
 def _start_and_stop_midway(dataset: Path, out: Path) -> subprocess.Popen:
     """Start a conversion in a subprocess and SIGSTOP it once it is writing (the temp folder exists, the output not)."""
     proc = subprocess.Popen([sys.executable, "-m", "vlocnetpp_core.cli", "convert", str(dataset), str(out), "--compress", "png", "--no-progress"],
-                            cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+                            cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, preexec_fn=ctrl_c_interrupts)
     tmp = temp_dir_for(out, proc.pid)
     while not any(tmp.rglob("*.mcap")) and proc.poll() is None:
         time.sleep(0.005)

@@ -10,6 +10,7 @@ import time
 from pathlib import Path
 
 import pytest
+from conftest import ctrl_c_interrupts
 
 from vlocnetpp_core import cli
 
@@ -55,7 +56,7 @@ def test_interrupted_render_leaves_nothing_behind(tmp_path):
     (out / "old.txt").write_text("previous dataset")
     cmd = [sys.executable, "-m", "vlocnetpp_core.cli", "synth", str(out), "--force", "--loops", "1", "--test-loops", "0",
            "--frames-per-loop", "2000", "--size", "48x32", "--no-progress"]
-    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=ctrl_c_interrupts)
     try:
         deadline = time.monotonic() + 120
         while not list(tmp_path.glob(".ds.partial-*/DeepLoc/train/LeftImages/Image_5.png")):
