@@ -74,3 +74,27 @@ def test_bad_config_files_name_the_file(tmp_path, text, message):
 def test_missing_config_file_is_a_clear_error(tmp_path):
     with pytest.raises(DataError, match="no such model config"):
         load_model_config(tmp_path / "absent.yaml")
+
+
+def test_base_takes_every_key_of_the_named_config_and_the_file_overrides_them(tmp_path):
+    (tmp_path / "narrow.yaml").write_text("base: lite\nname: narrow\nfc_width: 128\n")
+    (tmp_path / "narrower.yaml").write_text("base: narrow.yaml\nname: narrower\ndropout: 0.0\n")  # relative to this file
+    assert load_model_config(tmp_path / "narrow.yaml") == dataclasses.replace(load_model_config("lite"), name="narrow", fc_width=128)
+    assert load_model_config(tmp_path / "narrower.yaml") == dataclasses.replace(load_model_config("lite"), name="narrower",
+                                                                                  fc_width=128, dropout=0.0)
+
+
+@pytest.mark.parametrize(
+    ("files", "message"),
+    [
+        ({"a.yaml": "base: b.yaml\n", "b.yaml": "base: a.yaml\n"}, "'base' loops back"),
+        ({"a.yaml": "base: absent.yaml\n"}, "no such model config file"),
+        ({"a.yaml": "base: [lite]\n"}, "'base' must name a model config"),
+        ({"a.yaml": "base: b.yaml\n", "b.yaml": "bogus: 1\n"}, "unknown model config key"),
+    ],
+)
+def test_a_bad_base_is_a_clear_error(tmp_path, files, message):
+    for name, text in files.items():
+        (tmp_path / name).write_text(text)
+    with pytest.raises(DataError, match=message):
+        load_model_config(tmp_path / "a.yaml")

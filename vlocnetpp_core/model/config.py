@@ -3,7 +3,9 @@
 ``load_model_config("paper")`` / ``"lite"`` / ``"lite_pose"`` read the YAML shipped with the
 package (found by walking up from this file to the repository's ``config/`` or the install's
 ``share/vlocnetpp_ros/config/``); any other argument is a path to a YAML file with the same keys.
-Keys left out take the paper's values; unknown keys are an error naming the file.
+Keys left out take the paper's values; unknown keys are an error naming the file. ``base: NAME`` (a
+built-in name or a YAML file relative to this one) takes every key of that config first, so a variant
+names only what it changes.
 """
 
 from __future__ import annotations
@@ -232,18 +234,36 @@ def config_dir() -> Path | None:
 
 def load_model_config(name_or_path: str | Path) -> ModelConfig:
     """``"paper"`` / ``"lite"`` / ``"lite_pose"`` (shipped YAML) or a path to a YAML file -> :class:`ModelConfig`."""
-    text = str(name_or_path)
+    path = _config_path(str(name_or_path))
+    return ModelConfig.from_dict(_config_keys(path, ()), source=str(path))
+
+
+def _config_path(text: str, next_to: Path | None = None) -> Path:
+    """A built-in config's shipped YAML, or the file ``text`` (relative to ``next_to``'s folder when given)."""
     if text in BUILTIN_CONFIGS:
         folder = config_dir()
         if folder is None:
             raise UserError(f"cannot find the shipped config folder holding {text}.yaml (looked above {Path(__file__).parent})")
         path = folder / f"{text}.yaml"
     else:
-        path = Path(text)
+        path = Path(text) if next_to is None else next_to.parent / text
     if not path.is_file():
         raise DataError(path, f"no such model config file (or use one of {list(BUILTIN_CONFIGS)})")
+    return path
+
+
+def _config_keys(path: Path, chain: tuple[Path, ...]) -> dict[str, Any]:
+    """The keys of the YAML file ``path`` over those of its ``base`` (a built-in name or a file relative to it), and so on."""
+    if path.resolve() in chain:
+        raise DataError(path, "'base' loops back: " + " -> ".join(str(p) for p in (*chain, path.resolve())))
     try:
         data = yaml.safe_load(path.read_text())
     except (yaml.YAMLError, UnicodeDecodeError) as err:
         raise DataError(path, f"not valid YAML: {err}".splitlines()[0]) from None
-    return ModelConfig.from_dict(data if data is not None else {}, source=str(path))
+    data = {} if data is None else data
+    if not isinstance(data, dict) or "base" not in data:
+        return data
+    base = data.pop("base")
+    if not isinstance(base, str):
+        raise DataError(path, f"'base' must name a model config (a built-in name or a YAML file), got {base!r}")
+    return {**_config_keys(_config_path(base, next_to=path), (*chain, path.resolve())), **data}
