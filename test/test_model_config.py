@@ -91,6 +91,7 @@ def test_base_takes_every_key_of_the_named_config_and_the_file_overrides_them(tm
         ({"a.yaml": "base: absent.yaml\n"}, "no such model config file"),
         ({"a.yaml": "base: [lite]\n"}, "'base' must name a model config"),
         ({"a.yaml": "base: b.yaml\n", "b.yaml": "bogus: 1\n"}, "unknown model config key"),
+        ({"a.yaml": "base: b.yaml\n", "b.yaml": "- 1\n"}, "expected a mapping of model config keys"),
     ],
 )
 def test_a_bad_base_is_a_clear_error(tmp_path, files, message):
