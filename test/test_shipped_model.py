@@ -4,7 +4,7 @@ retrieval baseline shipped beside it (models/vlocnetpp_lite.reference.npz) on th
 
 What it achieves today (README, "Results"), here on the 175 frames of a fresh loop: segmentation and
 odometry far better than untrained, the heading several times better, and the position within a
-metre (over four test seeds 0.42 m / 1.56 deg against retrieval's 0.55 m / 2.03 deg when this was
+metre (over four test seeds 0.41 m / 1.55 deg against retrieval's 0.55 m / 2.03 deg when this was
 written: better than retrieval; 0.44 m between the trained lanes; README says so).
 """
 
