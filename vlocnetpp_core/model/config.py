@@ -261,9 +261,9 @@ def _config_keys(path: Path, chain: tuple[Path, ...]) -> dict[str, Any]:
     except (yaml.YAMLError, UnicodeDecodeError) as err:
         raise DataError(path, f"not valid YAML: {err}".splitlines()[0]) from None
     data = {} if data is None else data
-    if chain and not isinstance(data, dict):  # a base's keys are merged here; the named file's reach from_dict's check
+    if not isinstance(data, dict):
         raise DataError(path, f"expected a mapping of model config keys, got {type(data).__name__}")
-    if not isinstance(data, dict) or "base" not in data:
+    if "base" not in data:
         return data
     base = data.pop("base")
     if not isinstance(base, str):
