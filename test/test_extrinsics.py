@@ -208,4 +208,5 @@ def _result() -> LocalizerResult:
     (t, q), (ot, oq), (rt, rq) = _random_pose(), _random_pose(), _random_pose()
     return LocalizerResult(stamp=1.5, t=t, q=q, rel_t=rt / 10, rel_q=rq, odom_t=ot, odom_q=oq, linear=RNG.normal(size=3),
                            angular=RNG.normal(size=3), dt=0.05, pose_covariance=_random_spd(), odom_covariance=_random_spd(),
-                           twist_covariance=_random_spd(), mask=np.zeros((4, 5), np.uint8), reset_reason=None, seconds=0.01)
+                           twist_covariance=_random_spd(), mask=np.zeros((4, 5), np.uint8), reset_reason=None, seconds=0.01,
+                           network_t=t, network_q=q)

@@ -25,6 +25,7 @@ COMMANDS: dict[str, tuple[str, str, tuple[str, ...]]] = {
     "convert": ("vlocnetpp_core.bag.convert", "convert a DeepLoc / 7-Scenes dataset to a ROS 2 MCAP bag", ("convert-deeploc",)),
     "extract": ("vlocnetpp_core.bag.extract", "turn a robot's ROS 2 bag into a DeepLoc-layout dataset (images, poses, depth)", ()),
     "replay": ("vlocnetpp_core.bag.replay", "run the localizer over a bag and write an output bag", ()),
+    "map": ("vlocnetpp_core.mapping.cli", "build a keyframe map of training images for refinement (map build, map info)", ()),
     "evaluate-bag": ("vlocnetpp_core.bag.evaluate_bag", "score a bag holding ground truth and localizer outputs", ()),
     "bench": ("vlocnetpp_core.bench", "speed and memory benchmarks against the performance targets", ()),
     "export-onnx": ("vlocnetpp_core.onnx_export", "export the streaming step to ONNX", ()),

@@ -20,6 +20,7 @@ no segmentation columns (:func:`vlocnetpp_core.report.without_segmentation`).
 from __future__ import annotations
 
 import argparse
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -46,6 +47,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--intrinsics", default=None, metavar="FX,FY,CX,CY", help="camera intrinsics at the dataset image size (default: the reader's)")
     add_report_arguments(p, "retrieval baseline reference: a dataset folder (its training images) or a .npz from ReferenceSet.save "
                             "(default: the train split of --data when another split is evaluated)")
+    p.add_argument("--map", default=None, metavar="MAP", help="keyframe map (vlocnetpp map build) to refine the network's pose against; "
+                   "adds the refined row (overall.pose_refined in the JSON) and the structure-based baseline (no network)")
+    p.add_argument("--refine-every", type=int, default=1, metavar="K", help="with --map: refine every K-th frame, propagate "
+                   "the refined pose with the odometry in between (default 1: every frame)")
     p.add_argument("--use-depth", action="store_true", help="give the dataset depth to the localizer (as the node's aligned depth input) instead of the predicted depth")
     p.add_argument("--max-frames", type=int, default=None, metavar="N", help="evaluate at most the first N frames of each sequence")
     p.add_argument("--device", default="cpu", help="torch device (default cpu)")
@@ -58,26 +63,40 @@ def _check_mask(frame, mask: np.ndarray) -> None:
                         f"{frame.image.shape[1]}x{frame.image.shape[0]} image {frame.frame_id}")
 
 
+@dataclass
+class LocalizerRun:
+    """What :func:`run_localizer` measured: per-sequence ``results`` (the network's global pose as the prediction),
+    frames ``rejected`` per reason, the retrieval ``descriptors (N_k, D)`` of each result's frames (or None), the
+    published poses of a refining localizer (``tracks``, or None) and the structure-based baseline's poses per
+    result (``structure``: ``(t (N_k, 3), q (N_k, 4))``, or None)."""
+
+    results: list[SequenceResult]
+    rejected: dict[str, int]
+    descriptors: list[np.ndarray] | None = None
+    tracks: list | None = None
+    structure: list[tuple[np.ndarray, np.ndarray]] | None = None
+
+
 def run_localizer(localizer, index, max_frames: int | None = None, samples: int = 3, use_depth: bool = False,
-                  progress: bool = True, describe: bool = False) -> tuple[list[SequenceResult], dict[str, int], list[np.ndarray] | None]:
+                  progress: bool = True, describe: bool = False, structure=None) -> LocalizerRun:
     """Stream every sequence of ``index`` (a ``DatasetIndex``) through ``localizer`` (a ``Localizer``).
 
     The temporal state is reset at each sequence start. Frames the localizer rejects
-    (``FrameError``, e.g. non-finite outputs) are left out, as the node drops them; the count per
-    reason is returned with the per-sequence results, and with ``describe`` the retrieval descriptors
-    ``(N_k, D)`` of the frames of each result (:func:`vlocnetpp_core.retrieval.describe`; else None). ``ms`` is the
-    localizer's own wall time of ``step`` (decoding the dataset files is not included).
+    (``FrameError``, e.g. non-finite outputs) are left out, as the node drops them. With ``describe`` the
+    retrieval descriptors of the frames are kept (:func:`vlocnetpp_core.retrieval.describe`); with ``structure``
+    (a :class:`~vlocnetpp_core.mapping.refiner.Refiner`) the structure-based baseline runs on the same frames.
+    ``ms`` is the localizer's own wall time of ``step`` (decoding the dataset files is not included).
     """
     from tqdm import tqdm
 
+    from vlocnetpp_core.mapping.evaluation import RefinedTrack
     from vlocnetpp_core.preprocess import FrameError
     from vlocnetpp_core.retrieval import describe as describe_image
 
     ranges = [r if max_frames is None else r[:max_frames] for r in index.sequences]
     bar = tqdm(total=sum(len(r) for r in ranges), unit="frame", desc="evaluate", disable=not progress, dynamic_ncols=True)
-    results: list[SequenceResult] = []
-    descriptors: list[np.ndarray] = []
-    rejected: dict[str, int] = {}
+    run = LocalizerRun([], {}, [] if describe else None, [] if localizer.refinement is not None else None,
+                       [] if structure is not None else None)
     try:
         for rng in ranges:
             if len(rng) == 0:
@@ -87,18 +106,21 @@ def run_localizer(localizer, index, max_frames: int | None = None, samples: int 
             recorder = SequenceRecorder(name, localizer.num_classes)
             keep = {rng[p] for p in sample_positions(len(rng), samples)}
             localizer.reset("start")
-            described = []
+            described, track, located = [], RefinedTrack(), []
             for i in rng:
                 frame = index.load(i, depth=use_depth)
                 bar.update(1)
                 try:
                     out = localizer.step(frame.image, "rgb8", frame.stamp, depth=frame.depth if use_depth else None, intrinsics=frame.intrinsics)
                 except FrameError as err:
-                    rejected[err.reason] = rejected.get(err.reason, 0) + 1
+                    run.rejected[err.reason] = run.rejected.get(err.reason, 0) + 1
                     continue
-                if describe:
+                if describe or structure is not None:
                     described.append(describe_image(frame.image))
-                recorder.add(frame.stamp, frame.t, frame.q, out.t, out.q, out.rel_t, out.rel_q, out.seconds * 1000.0)
+                if structure is not None:
+                    located.append(_locate(structure, frame, described[-1])[:2])
+                track.add(out)
+                recorder.add(frame.stamp, frame.t, frame.q, out.network_t, out.network_q, out.rel_t, out.rel_q, out.seconds * 1000.0)
                 if out.mask is None:  # a pose-only model
                     continue
                 _check_mask(frame, out.mask)
@@ -107,30 +129,49 @@ def run_localizer(localizer, index, max_frames: int | None = None, samples: int 
                 if i in keep:
                     recorder.add_sample(frame.image, out.mask, frame.labels)
             if len(recorder):
-                results.append(recorder.result())
+                run.results.append(recorder.result())
                 if describe:
-                    descriptors.append(np.stack(described))
+                    run.descriptors.append(np.stack(described))
+                if run.tracks is not None:
+                    run.tracks.append(track)
+                if structure is not None:
+                    run.structure.append(tuple(np.array(v) for v in zip(*located, strict=True)))
     finally:
         bar.close()
-    return results, rejected, descriptors if describe else None
+    return run
+
+
+def _locate(refiner, frame, thumbnail: np.ndarray):
+    """The structure-based baseline's ``(t, q, refinement)`` of a dataset frame."""
+    grey, K = refiner.prepare(frame.image, frame.intrinsics)
+    return refiner.locate(refiner.extract(grey), thumbnail, K)
 
 
 def run(args: argparse.Namespace) -> int:
     if args.max_frames is not None and args.max_frames < 1:
         raise UserError(f"--max-frames must be >= 1, got {args.max_frames}")
+    if args.refine_every < 1:
+        raise UserError(f"--refine-every must be >= 1, got {args.refine_every}")
     thresholds, lengths = check_report_args(args)
 
     from vlocnetpp_core.data import open_dataset
     from vlocnetpp_core.localizer import Localizer
+    from vlocnetpp_core.mapping.evaluation import add_refined, add_structure_baseline
     from vlocnetpp_core.model.stages import TASK_NAMES
 
     index = open_dataset(args.data, args.format, args.split, args.intrinsics)
     if len(index) == 0:
         raise UserError(f"{args.data}: split {args.split!r} has no frames")
     reference = _reference(args, index.format)
-    localizer = Localizer.from_checkpoint(args.checkpoint, device=args.device)
-    results, rejected, descriptors = run_localizer(localizer, index, args.max_frames, args.samples, args.use_depth,
-                                                   progress=not args.no_progress, describe=reference is not None)
+    localizer = Localizer.from_checkpoint(args.checkpoint, device=args.device, map_path=args.map, refine_every=args.refine_every)
+    structure = None
+    if args.map is not None:
+        from vlocnetpp_core.mapping.refiner import Refiner
+
+        structure = Refiner(localizer.refinement.refiner.map)
+    run = run_localizer(localizer, index, args.max_frames, args.samples, args.use_depth, progress=not args.no_progress,
+                        describe=reference is not None, structure=structure)
+    results, rejected = run.results, run.rejected
     if not results:
         raise UserError(f"{args.checkpoint}: the localizer rejected every frame ({rejected})")
     class_names = localizer.class_names if len(localizer.class_names) == localizer.num_classes else CLASS_NAMES[: localizer.num_classes]
@@ -139,7 +180,10 @@ def run(args: argparse.Namespace) -> int:
     if not localizer.has_segmentation:
         without_segmentation(report, "none: the model has no semantic stream (a pose-only config)")
     if reference is not None:
-        add_baseline(report, results, descriptors, reference, thresholds)
+        add_baseline(report, results, run.descriptors, reference, thresholds)
+    if structure is not None:
+        add_refined(report, results, run.tracks, thresholds)
+        add_structure_baseline(report, results, run.structure, structure.map.source, len(structure.map), thresholds)
     tasks = localizer.model.config.tasks
     untrained = untrained_tasks(localizer.meta, tasks)
     report["meta"] = {"checkpoint": str(args.checkpoint), "data": str(args.data), "split": args.split, "tasks": list(tasks),

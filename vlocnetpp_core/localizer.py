@@ -80,17 +80,25 @@ class LocalizerResult:
     mask: np.ndarray | None  # (H, W) uint8 class ids at the resolution of the given image; None: the model has no semantic stream
     reset_reason: str | None  # why the temporal state was reset before this frame, None when it was not
     seconds: float  # wall time of the step
+    network_t: np.ndarray  # the network's own global pose (t, q above when source is "network")
+    network_q: np.ndarray
+    source: str = "network"  # of t, q and pose_covariance: "network", "refined" or "propagated" (mapping.stream)
+    refine_status: str | None = None  # the refinement tried on this frame: "refined" or why not; None: none tried
+    inliers: int = 0  # PnP inliers of the refinement tried (0 without)
 
 
 class Localizer:
     """Streaming inference with temporal state. Build with :meth:`from_checkpoint`."""
 
     def __init__(self, model: torch.nn.Module, meta: dict, device: str | torch.device = "cpu", max_gap_s: float = 1.0,
-                 num_threads: int = 0, backend: str = "torch", onnx_path: str | Path | None = None):
+                 num_threads: int = 0, backend: str = "torch", onnx_path: str | Path | None = None, refiner=None,
+                 refine_every: int = 1):
         """``backend``: ``"torch"`` runs ``model.step`` with the process's torch threads (set by the program:
         :func:`vlocnetpp_core.threads.use_threads`); ``"onnx"`` runs the exported step with ONNX Runtime in
         a session of ``num_threads`` threads (:mod:`vlocnetpp_core.threads`; ``onnx_path`` if it matches these
-        weights, else a cached export; see :mod:`vlocnetpp_core.onnx_backend`)."""
+        weights, else a cached export; see :mod:`vlocnetpp_core.onnx_backend`). ``refiner``: a
+        :class:`~vlocnetpp_core.mapping.refiner.Refiner` to refine the global pose against its map every
+        ``refine_every``-th frame (:mod:`vlocnetpp_core.mapping.stream`); None: the network's pose."""
         if backend not in BACKENDS:
             raise UserError(f"backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
         self.device = torch.device(device)
@@ -112,18 +120,29 @@ class Localizer:
         self.odometry_variance = np.maximum(odo_var, MIN_VARIANCE)
         self._odom_t, self._odom_q = _IDENTITY_T.copy(), _IDENTITY_Q.copy()
         self._odom_steps = 0
+        self.refinement = None
+        if refiner is not None:
+            from vlocnetpp_core.mapping.stream import RefinedStream
+
+            self.refinement = RefinedStream(refiner, refine_every, self.odometry_variance)
         self.reset("start")
 
     @classmethod
     def from_checkpoint(cls, path: str | Path, device: str = "cpu", max_gap_s: float = 1.0, num_threads: int = 0,
-                        backend: str = "torch") -> Localizer:
+                        backend: str = "torch", map_path: str | Path | None = None, refine_every: int = 1) -> Localizer:
         """Load ``NAME.safetensors`` + ``NAME.json`` (see :mod:`vlocnetpp_core.checkpoint`); the onnx
-        backend uses ``NAME.onnx`` next to them when it was exported from these weights."""
+        backend uses ``NAME.onnx`` next to them when it was exported from these weights. ``map_path``: a keyframe
+        map (``vlocnetpp map build``) to refine against; None: no refinement."""
+        refiner = None
+        if map_path is not None:
+            from vlocnetpp_core.mapping.refiner import Refiner
+
+            refiner = Refiner.from_file(map_path)
         if str(device).startswith("cuda") and not torch.cuda.is_available():
             raise UserError(f"device {device!r} requested but CUDA is not available (use device 'cpu')")
         model, meta = load_checkpoint(path, device=device)
         return cls(model, meta, device=device, max_gap_s=max_gap_s, num_threads=num_threads, backend=backend,
-                   onnx_path=checkpoint_paths(path)[0].with_suffix(".onnx"))
+                   onnx_path=checkpoint_paths(path)[0].with_suffix(".onnx"), refiner=refiner, refine_every=refine_every)
 
     @property
     def has_segmentation(self) -> bool:
@@ -139,6 +158,8 @@ class Localizer:
         self._prev_stamp: float | None = None
         self._prev_shape: tuple[int, int] | None = None
         self._prev_intrinsics: Intrinsics | None = None
+        if self.refinement is not None:
+            self.refinement.reset()
         if clear_odometry:
             self._odom_t, self._odom_q = _IDENTITY_T.copy(), _IDENTITY_Q.copy()
             self._odom_steps = 0
@@ -167,6 +188,8 @@ class Localizer:
         reason = self._reset_reason(stamp, shape, net_intrinsics)
         if reason is not None:
             self._state = None
+        if self.refinement is not None:
+            self.refinement.start(rgb, self.default_intrinsics.resized(shape[1], shape[0]) if intrinsics is None else intrinsics)
         with torch.inference_mode():
             out, state = self._step_fn(x.to(self.device), self._state, K.to(self.device), None if d is None else d.to(self.device))
             outputs = (out.xyz, out.quat, out.rel_xyz, out.rel_quat, out.seg_logits)
@@ -175,6 +198,8 @@ class Localizer:
                 ids = None if out.seg_logits is None else out.seg_logits[0].argmax(0).to(torch.uint8).cpu().numpy()
                 xyz, quat, rel_xyz, rel_quat = (v[0].double().cpu().numpy() for v in outputs[:4])
         if not finite:
+            if self.refinement is not None:
+                self.refinement.cancel()
             self.reset("nan_output")
             raise FrameError("nan_output", "the network produced NaN or infinite outputs; frame rejected and temporal state reset")
         dt = 0.0 if self._prev_stamp is None or reason is not None else stamp - self._prev_stamp
@@ -197,13 +222,19 @@ class Localizer:
         mask = ids
         if ids is not None and ids.shape != shape:
             mask = cv2.resize(ids, (shape[1], shape[0]), interpolation=cv2.INTER_NEAREST_EXACT)
+        pose_t, pose_q, pose_cov, refined = xyz, q, np.diag(self.pose_variance), {}
+        if self.refinement is not None:
+            p = self.refinement.finish(xyz, q, rel_t, rel_q, continued=reason is None)
+            pose_t, pose_q, refined = p.t, p.q, {"source": p.source, "refine_status": p.status, "inliers": p.inliers}
+            if p.covariance is not None:
+                pose_cov = p.covariance + np.diag(np.full(6, MIN_VARIANCE))
         return LocalizerResult(
-            stamp=stamp, t=xyz, q=q, rel_t=rel_t, rel_q=rel_q, odom_t=self._odom_t.copy(), odom_q=self._odom_q.copy(),
+            stamp=stamp, t=pose_t, q=pose_q, rel_t=rel_t, rel_q=rel_q, odom_t=self._odom_t.copy(), odom_q=self._odom_q.copy(),
             linear=linear, angular=angular, dt=dt,
-            pose_covariance=np.diag(self.pose_variance),
+            pose_covariance=pose_cov,
             odom_covariance=np.diag(self.odometry_variance * (1 + self._odom_steps)),
             twist_covariance=np.diag(twist_var),
-            mask=mask, reset_reason=reason, seconds=time.perf_counter() - start,
+            mask=mask, reset_reason=reason, seconds=time.perf_counter() - start, network_t=xyz, network_q=q, **refined,
         )
 
     def _reset_reason(self, stamp: float, shape: tuple[int, int], intrinsics: Intrinsics) -> str | None:

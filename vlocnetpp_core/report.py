@@ -201,10 +201,12 @@ def format_report(report: dict, frames: dict[str, int] | None = None) -> str:
 
     rows = [row(name, part, frames.get(name)) for name, part in report["per_sequence"].items()]
     total = sum(frames.values()) if frames else None
-    rows.append(row("overall", overall, total))
-    base = report.get("baseline")
-    if base:
-        rows.append(row(base["name"], base["overall"], total))
+    rows.append(row("overall (network)" if "pose_refined" in overall else "overall", overall, total))
+    if "pose_refined" in overall:
+        rows.append(row("refined", {"pose": overall["pose_refined"]}, total))
+    for key in ("baseline", "structure_baseline"):
+        if report.get(key):
+            rows.append(row(report[key]["name"], report[key]["overall"], total))
     widths = [max(len(h), *(len(r[c]) for r in rows)) for c, h in enumerate(headers)]
     fmt = "  ".join(f"{{:<{w}}}" if c == 0 else f"{{:>{w}}}" for c, w in enumerate(widths))
     rule = "  ".join("-" * w for w in widths)
@@ -213,6 +215,10 @@ def format_report(report: dict, frames: dict[str, int] | None = None) -> str:
     verdict = baseline_verdict(report)
     if verdict:
         lines.append(verdict)
+    if "pose_refined" in overall:
+        from vlocnetpp_core.mapping.evaluation import refinement_lines
+
+        lines += refinement_lines(report)
     lengths = overall["odometry"]["lengths_m"]
     lines.append(f"odometry segment lengths [m]: {', '.join(f'{v:g}' for v in lengths) if lengths else '- (sequences too short)'}")
     iou = {k: v for k, v in overall["segmentation"]["iou"].items() if v is not None} if has_seg else {}

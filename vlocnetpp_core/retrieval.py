@@ -66,6 +66,13 @@ class ReferenceSet:
         q = _normalise_rows(np.atleast_2d(queries) - self._mean).astype(np.float32)
         return np.argmax(q @ self._centred.T, axis=1)
 
+    def ranked(self, query: np.ndarray, count: int) -> np.ndarray:
+        """``query (D,)`` raw descriptor -> the indices ``(count,)`` of the most similar reference images, most similar first."""
+        q = _normalise_rows(np.atleast_2d(query) - self._mean).astype(np.float32)[0]
+        similarity = self._centred @ q
+        top = np.argpartition(-similarity, count - 1)[:count] if count < len(similarity) else np.arange(len(similarity))
+        return top[np.argsort(-similarity[top], kind="stable")]
+
     def poses(self, queries: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The poses ``(M, 3)``, ``(M, 4)`` of the nearest reference images of ``queries (M, D)``."""
         k = self.nearest(queries)
