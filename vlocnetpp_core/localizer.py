@@ -224,7 +224,7 @@ class Localizer:
             mask = cv2.resize(ids, (shape[1], shape[0]), interpolation=cv2.INTER_NEAREST_EXACT)
         pose_t, pose_q, pose_cov, refined = xyz, q, np.diag(self.pose_variance), {}
         if self.refinement is not None:
-            p = self.refinement.finish(xyz, q, rel_t, rel_q, continued=reason is None)
+            p = self.refinement.finish(xyz, q, rel_t, rel_q, continued=reason is None, mask=mask)
             pose_t, pose_q, refined = p.t, p.q, {"source": p.source, "refine_status": p.status, "inliers": p.inliers}
             if p.covariance is not None:
                 pose_cov = p.covariance + np.diag(np.full(6, MIN_VARIANCE))

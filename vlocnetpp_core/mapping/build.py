@@ -9,6 +9,8 @@ turned by at least ``angle_deg`` from it. Each keyframe's SIFT keypoints (:mod:`
 * without depth: triangulated with the next keyframe of the sequence (the previous one for the last), whose pose is
   known: matched keypoints kept where both reprojection errors are under 2 px, the point lies in front of both
   cameras, and the rays meet at an angle of at least 1 deg.
+
+Where the dataset has labels, keypoints on moving objects (class ``Dynamic``, :func:`.features.off_dynamic`) are left out.
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ import numpy as np
 
 from vlocnetpp_core import geometry
 from vlocnetpp_core.errors import UserError
-from vlocnetpp_core.mapping.features import FeatureConfig, FeatureExtractor, Features, match, to_grey
+from vlocnetpp_core.mapping.features import FeatureConfig, FeatureExtractor, Features, match, off_dynamic, to_grey
 from vlocnetpp_core.mapping.keyframe_map import KeyframeMap
 
 MAX_DEPTH_M = 100.0
@@ -104,8 +106,8 @@ def build_map(indexes: Sequence, spacing_m: float = 5.0, angle_deg: float = 20.0
     bar = tqdm(total=sum(len(ids) for _, ids in chosen), desc="map keyframes", unit="keyframe", disable=not progress, dynamic_ncols=True)
     with bar:
         for index, ids in chosen:
-            frames = [index.load(i, depth=index.has_depth, labels=False) for i in ids]
-            found = [extractor(to_grey(f.image)) for f in frames]
+            frames = [index.load(i, depth=index.has_depth, labels=index.has_labels) for i in ids]
+            found = [_static_features(extractor, f) for f in frames]
             for j, (frame, feats) in enumerate(zip(frames, found, strict=True)):
                 keep, points = _points_of(frames, found, j, features.ratio)
                 _append(parts, frame, feats, keep, points, describe(frame.image))
@@ -113,6 +115,12 @@ def build_map(indexes: Sequence, spacing_m: float = 5.0, angle_deg: float = 20.0
     if sum(parts["counts"]) == 0:
         raise UserError("no map points: the keyframes have no SIFT features with depth (or none could be triangulated)")
     return _assemble(parts, features, "; ".join(f"{ix.root} ({ix.split})" for ix in indexes))
+
+
+def _static_features(extractor: FeatureExtractor, frame) -> Features:
+    """The frame's SIFT features, without those on moving objects where the frame has labels."""
+    feats = extractor(to_grey(frame.image))
+    return feats if frame.labels is None else feats.select(off_dynamic(feats.uv, frame.labels))
 
 
 def _points_of(frames: list, found: list[Features], j: int, ratio: float) -> tuple[np.ndarray, np.ndarray]:

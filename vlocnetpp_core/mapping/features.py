@@ -14,6 +14,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from vlocnetpp_core.classes import CLASS_NAMES
+
 DESCRIPTOR_SIZE = 128
 
 
@@ -45,6 +47,23 @@ class Features:
 
     def __len__(self) -> int:
         return len(self.uv)
+
+    def select(self, keep: np.ndarray) -> Features:
+        """The features where ``keep (N,) bool``."""
+        return Features(self.uv[keep], self.descriptors[keep])
+
+
+DYNAMIC_CLASS = CLASS_NAMES.index("Dynamic")  # cars and people: where they stood in the map says nothing of a later visit
+
+
+def off_dynamic(uv: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    """``(N,) bool``: the keypoints ``uv (N, 2)`` (pixels of an image of the size of ``labels``) at least 2 pixels away
+    from the :data:`DYNAMIC_CLASS` pixels of the class-id map ``labels (H, W)``."""
+    dynamic = cv2.dilate((labels == DYNAMIC_CLASS).astype(np.uint8), np.ones((5, 5), np.uint8))
+    h, w = labels.shape
+    col = np.clip(np.round(uv[:, 0]).astype(int), 0, w - 1)
+    row = np.clip(np.round(uv[:, 1]).astype(int), 0, h - 1)
+    return dynamic[row, col] == 0
 
 
 def to_grey(image: np.ndarray) -> np.ndarray:

@@ -4,7 +4,8 @@ Per frame, :meth:`RefinedStream.start` (before the network runs) begins the fram
 worker thread, so that SIFT and the network share the cores; :meth:`RefinedStream.finish` (with the network's
 pose and relative pose) matches and solves (:meth:`.refiner.Refiner.refine`) and returns the pose to publish:
 
-* ``refined``: the PnP pose, with its calibrated covariance;
+* ``refined``: the PnP pose, with its calibrated covariance (keypoints on the moving objects of the network's own
+  segmentation left out);
 * ``propagated``: on the frames between refinements (``refine_every > 1``), the last refined pose moved on by
   the network's relative poses, its covariance grown by the odometry variance per step;
 * ``network``: the network's pose, when refinement failed (the status says why) or nothing was refined yet.
@@ -22,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from vlocnetpp_core import geometry
+from vlocnetpp_core.mapping.features import off_dynamic
 from vlocnetpp_core.mapping.refiner import Refiner
 
 MAX_PREDICTION_STEPS = 30
@@ -52,7 +54,7 @@ class RefinedStream:
         self.refine_every = int(refine_every)
         self.odometry_variance = np.zeros(6) if odometry_variance is None else np.asarray(odometry_variance, np.float64)
         self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="vlocnetpp-features")
-        self._pending: tuple[Future, np.ndarray] | None = None
+        self._pending: tuple[Future, np.ndarray, int] | None = None  # features, K, width of the grey image
         self.reset()
 
     def reset(self) -> None:
@@ -66,7 +68,7 @@ class RefinedStream:
         if self._anchor is not None and (self._steps + 1) % self.refine_every != 0:
             return  # propagated frame
         grey, K = self.refiner.prepare(image, intrinsics)
-        self._pending = (self._worker.submit(self.refiner.extract, grey), K)
+        self._pending = (self._worker.submit(self.refiner.extract, grey), K, grey.shape[1])
 
     def cancel(self) -> None:
         """Drop the started frame (e.g. the network rejected it)."""
@@ -74,9 +76,11 @@ class RefinedStream:
             self._pending[0].result()
             self._pending = None
 
-    def finish(self, net_t: np.ndarray, net_q: np.ndarray, rel_t: np.ndarray, rel_q: np.ndarray, continued: bool) -> StreamPose:
+    def finish(self, net_t: np.ndarray, net_q: np.ndarray, rel_t: np.ndarray, rel_q: np.ndarray, continued: bool,
+               mask: np.ndarray | None = None) -> StreamPose:
         """The pose of the started frame given the network's pose and relative pose; ``continued`` False on a first
-        frame (the relative pose means nothing)."""
+        frame (the relative pose means nothing); ``mask (H, W)``: the network's class ids at the image's resolution,
+        whose moving objects are left out of the matching (None: a pose-only model)."""
         if not continued:
             self.reset()
         prediction = None
@@ -90,6 +94,9 @@ class RefinedStream:
             self._anchor = prediction
             return StreamPose(prediction[0], prediction[1], prediction[2], "propagated", None, 0)
         features = pending[0].result()
+        if mask is not None:
+            scale = mask.shape[1] / pending[2]
+            features = features.select(off_dynamic(features.uv * scale, mask))
         result = self.refiner.refine(features, pending[1], (net_t, net_q), None if prediction is None else prediction[:2])
         if result.accepted:
             s = result.solution
