@@ -30,7 +30,8 @@ from vlocnetpp_core.localizer import Localizer
 from vlocnetpp_ros import conversions
 
 OUTPUTS = {"pose": ("vlocnet/pose", PoseStamped), "pwc": ("vlocnet/pose_with_covariance", PoseWithCovarianceStamped),
-           "odom": ("vlocnet/odometry", Odometry), "seg": ("vlocnet/segmentation", Image)}
+           "odom": ("vlocnet/odometry", Odometry), "seg": ("vlocnet/segmentation", Image),
+           "net": ("vlocnet/network_pose", PoseStamped)}  # the network's own pose: only a node with a map publishes it
 CAMERA = "/camera/image_raw"
 
 

@@ -249,3 +249,32 @@ def shipped_checkpoint() -> Path:
             return path
     looked = ", ".join(map(str, candidates)) or f"share/vlocnetpp_ros/{SHIPPED_MODEL} (vlocnetpp_ros is not on AMENT_PREFIX_PATH)"
     raise FileNotFoundError(f"the shipped model is missing (looked for {looked})")
+
+
+MAP_AUTO = "auto"  # the map setting that means NAME.map.npz beside NAME.safetensors
+
+
+def resolve_map_path(checkpoint: str | Path, value: str | Path | None, what: str = "map", warn=None) -> Path | None:
+    """The keyframe map a localizer of ``checkpoint`` refines against, from a map setting (the node's parameter
+    ``map``, ``--map`` of ``replay`` and ``evaluate-bag``), named ``what`` in messages: None or ``""``: none (no
+    refinement); ``"auto"``: ``NAME.map.npz`` beside ``NAME.safetensors`` when that file exists, else none, and
+    ``warn`` (a callable, if given) gets one line saying so (not when the checkpoint itself is missing: loading it
+    says so); anything else: that file, a :class:`DataError` naming it when it is missing or a folder."""
+    if value is None or str(value) == "":
+        return None
+    if str(value) == MAP_AUTO:
+        weights = checkpoint_paths(checkpoint)[0]
+        path = weights.with_name(weights.name.removesuffix(".safetensors") + ".map.npz")
+        if path.is_file():
+            return path
+        if warn is not None and weights.is_file():
+            warn(f"{what} '{MAP_AUTO}': no keyframe map beside the checkpoint ({path} is missing): running without refinement "
+                 "(build one with 'vlocnetpp map build')")
+        return None
+    path = Path(value).expanduser()
+    if path.is_dir():
+        raise DataError(path, f"{what}: a folder, not a keyframe map file (.npz from 'vlocnetpp map build')")
+    if not path.is_file():
+        raise DataError(path, f"{what}: no such keyframe map file (build one with 'vlocnetpp map build', or give '{MAP_AUTO}' "
+                              "for NAME.map.npz beside the checkpoint, or empty for no refinement)")
+    return path

@@ -4,11 +4,14 @@
    ``campus``; a visit seed never used for training: training used seed 0),
 2. convert them to a ROS 2 MCAP bag (``vlocnetpp convert``),
 3. replay the bag through the real ``localizer`` node over DDS with the shipped model
-   (``vlocnetpp replay --through-node --rate max``: every frame is processed),
+   (``vlocnetpp replay --through-node --rate max``: every frame is processed), refining its pose
+   against the keyframe map shipped beside the model (``models/vlocnetpp_lite.map.npz``, ``--map
+   auto``; without that file a note says so and the network's pose is published),
 4. score the output bag (``vlocnetpp evaluate-bag``) and print the results table, the plots
-   and the output bag; the retrieval baseline (pose of the nearest training image, from the
-   descriptors shipped beside the model: ``models/vlocnetpp_lite.reference.npz``) is scored
-   on the same frames and printed under the network.
+   and the output bag. Rows: the network's pose, the refined pose (with the map), the retrieval
+   baseline (pose of the nearest training image, from the descriptors shipped beside the model:
+   ``models/vlocnetpp_lite.reference.npz``) and the structure-based baseline (retrieval + SIFT + PnP
+   against the map, no network), all on the same frames.
 
 Nothing is cached: every number comes from this run.
 """
@@ -34,6 +37,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--loops", type=int, default=2, help="test loops to render (default 2)")
     p.add_argument("--frames-per-loop", type=int, default=175, help="frames per loop (default 175, one lap)")
     p.add_argument("--checkpoint", default=None, help="checkpoint to run (default: the shipped model)")
+    p.add_argument("--map", default="auto", metavar="MAP.npz|auto",
+                   help="keyframe map to refine against (default auto: NAME.map.npz beside the checkpoint, none when missing; '' for none)")
 
 
 def _step(n: int, text: str) -> float:
@@ -47,12 +52,12 @@ def _done(t0: float) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from vlocnetpp_core.bag.convert import convert
-    from vlocnetpp_core.bag.evaluate_bag import collect_results
-    from vlocnetpp_core.checkpoint import shipped_checkpoint
+    from vlocnetpp_core.bag.evaluate_bag import bag_report, refined_share_line
+    from vlocnetpp_core.checkpoint import resolve_map_path, shipped_checkpoint
     from vlocnetpp_core.classes import CLASS_NAMES
     from vlocnetpp_core.data import open_dataset
-    from vlocnetpp_core.metrics import evaluate_sequences
-    from vlocnetpp_core.report import add_baseline, format_report, write_outputs
+    from vlocnetpp_core.mapping.refiner import Refiner
+    from vlocnetpp_core.report import format_report, write_outputs
     from vlocnetpp_core.retrieval import ReferenceSet, reference_of
     from vlocnetpp_core.synth import render_dataset
 
@@ -62,12 +67,16 @@ def run(args: argparse.Namespace) -> int:
         checkpoint = Path(args.checkpoint) if args.checkpoint else shipped_checkpoint()
     except FileNotFoundError as err:
         raise UserError(str(err)) from None
+    notes: list[str] = []
+    map_path = resolve_map_path(checkpoint, args.map, "--map", notes.append)
     out = Path(args.out)
     if out.exists():
         shutil.rmtree(out)
     out.mkdir(parents=True)
     start = time.perf_counter()
-    print(f"VLocNet++ demo: model {checkpoint}, output {out}/")
+    print(f"VLocNet++ demo: model {checkpoint}, map {map_path or 'none (the network pose only)'}, output {out}/")
+    for line in notes:
+        print(f"note: {line}")
 
     t0 = _step(1, f"rendering {args.loops} fresh test loops of the synthetic campus (scene 'campus', visit seed {args.seed})")
     data = out / "campus"
@@ -80,25 +89,19 @@ def run(args: argparse.Namespace) -> int:
     print("          " + convert([open_dataset(data, "deeploc", "test")], bag).format().replace("\n", "\n          "))
     _done(t0)
 
-    t0 = _step(3, "replaying the bag through the real 'localizer' node over DDS (one frame at a time, every frame processed)")
+    refining = ", refining against the keyframe map" if map_path else ""
+    t0 = _step(3, f"replaying the bag through the real 'localizer' node over DDS (one frame at a time, every frame processed{refining})")
     result_bag = out / "localized.mcap"
-    cmd = [*program_command("replay-node"), str(bag), "--checkpoint", str(checkpoint),
-           "--out", str(result_bag), "--through-node", "--rate", "max"]
-    proc = subprocess.run(cmd, capture_output=True, text=True)
-    if proc.returncode != 0:
-        raise UserError(f"replay through the node failed:\n{proc.stderr[-3000:]}")
-    summary = proc.stdout.strip()
+    summary = _replay_through_node(bag, checkpoint, map_path, result_bag)
     print("          " + summary.replace("\n", "\n          "))
     _done(t0)
 
-    t0 = _step(4, "evaluating the output bag (global pose, odometry, segmentation)")
+    t0 = _step(4, "evaluating the output bag (global pose, odometry, segmentation; baselines on the same frames)")
     reference_file = reference_of(checkpoint)
     reference = ReferenceSet.load(reference_file) if reference_file.is_file() else None
-    results, descriptors = collect_results(result_bag, samples=3, describe=reference is not None)
-    report = evaluate_sequences(results, class_names=CLASS_NAMES)
-    if reference is not None:
-        add_baseline(report, results, descriptors, reference)
-    report["meta"] = {"checkpoint": str(checkpoint), "bag": str(result_bag), "seed": args.seed}
+    refiner = Refiner.from_file(map_path) if map_path else None
+    report, results = bag_report(result_bag, samples=3, reference=reference, refiner=refiner)
+    report["meta"] = {"checkpoint": str(checkpoint), "bag": str(result_bag), "seed": args.seed, "map": str(map_path) if map_path else None}
     frames = {r.name: len(r.stamps) for r in results}
     n = sum(frames.values())
     wall = _seconds_per_frame(summary, n)
@@ -108,15 +111,31 @@ def run(args: argparse.Namespace) -> int:
 
     print("\nResults on the fresh test loops (ms/frame: see below)\n")
     print(format_report(report, frames))
+    if refined_share_line(report):
+        print(refined_share_line(report))
     if reference is None:
         print(f"note: no retrieval baseline: {reference_file} (the descriptors of the model's training images) not found")
+    if map_path is None:
+        print("note: no refined and no structure-based rows: " + (notes[0] if notes else "no keyframe map (--map '')"))
     if wall is not None:
         print(f"through the node: {1000 * wall:.1f} ms per frame (image published -> pose received, lockstep, including DDS)")
     print()
     write_outputs(report, results, CLASS_NAMES, out / "metrics.json", None, out / "plots")
-    print(f"output bag: {result_bag} (input topics + {', '.join(topics.OUTPUT_TOPICS)})")
+    outputs = [t for t in topics.OUTPUT_TOPICS if map_path or t != topics.NETWORK_POSE_TOPIC]
+    print(f"output bag: {result_bag} (input topics + {', '.join(outputs)})")
     print(f"demo finished in {time.perf_counter() - start:.0f} s")
     return 0
+
+
+def _replay_through_node(bag: Path, checkpoint: Path, map_path: Path | None, out: Path) -> str:
+    """``vlocnetpp replay --through-node --rate max`` of ``bag`` into ``out`` (with ``--map`` when there is a map);
+    its summary."""
+    cmd = [*program_command("replay-node"), str(bag), "--checkpoint", str(checkpoint),
+           "--out", str(out), "--through-node", "--rate", "max", *(["--map", str(map_path)] if map_path else [])]
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise UserError(f"replay through the node failed:\n{proc.stderr[-3000:]}")
+    return proc.stdout.strip()
 
 
 def _seconds_per_frame(summary: str, frames: int) -> float | None:

@@ -7,7 +7,11 @@ start. Key names (``DiagnosticStatus.values``): ``input_rate_hz``, ``processing_
 ``processed``, ``dropped`` (replaced in the one-slot mailbox before inference), ``rejected``
 (frames skipped, total) and ``rejected.<reason>``, ``ignored.<reason>`` (depth or camera
 info not used, the frame still processed), ``resets`` (total) and ``reset.<reason>``, plus static
-``info`` entries (checkpoint, device, input size).
+``info`` entries (checkpoint, device, input size, map). With refinement against a keyframe map
+(``refinement``): ``refined``, the share of processed frames whose published pose is not the network's
+own (refined or propagated), ``source.<source>`` (``network``, ``refined``, ``propagated``) and
+``refine.<status>`` (the refinement tried per frame: ``refined``, or why not; see
+:data:`vlocnetpp_core.mapping.refiner.STATUSES`) counts.
 
 Memory is bounded whatever arrives: the rate and latency windows keep at most ``MAX_EVENTS``
 entries (beyond that the rate is measured over the span they cover), and a counter or the
@@ -36,9 +40,10 @@ def _bounded_key(keys, key: str) -> str:
 class NodeStats:
     """What the node did, for ``/diagnostics``."""
 
-    def __init__(self, window_s: float = 5.0, info: dict[str, str] | None = None):
+    def __init__(self, window_s: float = 5.0, info: dict[str, str] | None = None, refinement: bool = False):
         self.window_s = window_s
         self.info = dict(info or {})
+        self.refinement = refinement
         self._lock = threading.Lock()
         self._arrivals: deque[float] = deque(maxlen=MAX_EVENTS)
         self._done: deque[tuple[float, float]] = deque(maxlen=MAX_EVENTS)  # (finish time, latency s)
@@ -48,6 +53,8 @@ class NodeStats:
         self.rejected: Counter[str] = Counter()
         self.ignored: Counter[str] = Counter()
         self.resets: Counter[str] = Counter()
+        self.sources: Counter[str] = Counter()  # of the published pose, per processed frame
+        self.refine_statuses: Counter[str] = Counter()
 
     def arrived(self, now: float, replaced: bool) -> None:
         with self._lock:
@@ -56,12 +63,18 @@ class NodeStats:
             self._arrivals.append(now)
             self._trim(now)
 
-    def processed_frame(self, now: float, latency_s: float, reset_reason: str | None) -> None:
+    def processed_frame(self, now: float, latency_s: float, reset_reason: str | None, source: str = "network",
+                        refine_status: str | None = None) -> None:
+        """A frame answered; ``source`` of its published pose and ``refine_status`` of the refinement tried on it
+        (``LocalizerResult``; None: none tried)."""
         with self._lock:
             self.processed += 1
             self._done.append((now, latency_s))
             if reset_reason is not None and reset_reason != "start":
                 self.resets[_bounded_key(self.resets, reset_reason)] += 1
+            self.sources[_bounded_key(self.sources, source)] += 1
+            if refine_status is not None:
+                self.refine_statuses[_bounded_key(self.refine_statuses, refine_status)] += 1
             self._trim(now)
 
     def reject(self, reason: str) -> None:
@@ -106,6 +119,11 @@ class NodeStats:
             out.update({f"rejected.{k}": v for k, v in sorted(self.rejected.items())})
             out.update({f"ignored.{k}": v for k, v in sorted(self.ignored.items())})
             out.update({f"reset.{k}": v for k, v in sorted(self.resets.items())})
+            if self.refinement:
+                not_network = self.processed - self.sources.get("network", 0)
+                out["refined"] = not_network / self.processed if self.processed else 0.0
+                out.update({f"source.{k}": v for k, v in sorted(self.sources.items())})
+                out.update({f"refine.{k}": v for k, v in sorted(self.refine_statuses.items())})
             out.update(self.info)
             return out
 

@@ -7,15 +7,20 @@ and ``CameraInfo``, and publishes for every processed frame, with the input stam
 
 * ``vlocnet/pose`` (``PoseStamped`` in ``map_frame``): global camera pose, or with ``base_frame``
   set the pose of ``base_frame`` (``T_map,base = T_map,camera camera_extrinsics^{-1}``,
-  :mod:`vlocnetpp_core.extrinsics`);
+  :mod:`vlocnetpp_core.extrinsics`); with a keyframe map (parameter ``map``) the refined pose, or
+  between refinements (``refine_every``) the propagated one, else the network's;
 * ``vlocnet/pose_with_covariance`` (``PoseWithCovarianceStamped``, same stamp, frame and pose): with
-  the calibrated 6x6 covariance (robot_localization's input);
+  the calibrated 6x6 covariance (robot_localization's input; that of the refinement when refined);
+* ``vlocnet/network_pose`` (``PoseStamped``, same stamp and frame): only with a map, the network's own pose;
 * ``vlocnet/odometry`` (``Odometry`` in ``odom_frame``, child ``base_frame`` or the image's
   frame): pose accumulated from the odometry stream, twist = relative motion / dt, covariances
   from the checkpoint calibration; of the base when ``base_frame`` is set;
 * ``vlocnet/segmentation`` (``Image`` mono8, the input's frame): class id per pixel; advertised
   only with ``publish_segmentation`` and a model that has a semantic stream;
-* ``/diagnostics`` (1 Hz): rates, latency, dropped, rejected by reason, resets by reason.
+* ``/diagnostics`` (1 Hz): rates, latency, dropped, rejected by reason, resets by reason; with a map the
+  share of frames refined and the refinement's outcomes (:mod:`vlocnetpp_ros.diagnostics`).
+
+Parameters: :mod:`vlocnetpp_ros.parameters` (``config/localizer.yaml`` sets every one).
 
 All numbers come from :class:`vlocnetpp_core.localizer.Localizer`; this node only converts
 messages. The subscription callback only drops the message into a one-slot mailbox (never
@@ -59,17 +64,16 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import Header
 
 from vlocnetpp_core.bag import topics
-from vlocnetpp_core.checkpoint import SHIPPED_MODEL, shipped_checkpoint
 from vlocnetpp_core.errors import UserError
-from vlocnetpp_core.extrinsics import IDENTITY_VALUES, CameraExtrinsics, to_base_frame
-from vlocnetpp_core.localizer import BACKENDS, Localizer
+from vlocnetpp_core.extrinsics import CameraExtrinsics, base_pose, to_base_frame
+from vlocnetpp_core.localizer import Localizer
 from vlocnetpp_core.preprocess import FrameError
 from vlocnetpp_core.threads import resolve_threads, use_threads
 from vlocnetpp_ros import conversions
 from vlocnetpp_ros.diagnostics import NodeStats, ThrottledLog
 from vlocnetpp_ros.mailbox import LatestMailbox
+from vlocnetpp_ros.parameters import PARAMETERS, check_parameters, default_checkpoint, extrinsics_of, map_of
 
-PACKAGE = "vlocnetpp_ros"
 # Keep-last 10, the depth of ROS's default (reliable) publisher profile. A reliable subscription whose
 # history is shallower than the publisher's window leaks in Fast DDS 2.14 when large (fragmented)
 # messages of varying sizes overflow it: measured ~20 MB per 3,000 malformed 640x480 messages with
@@ -78,61 +82,6 @@ PACKAGE = "vlocnetpp_ros"
 CAMERA_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.BEST_AVAILABLE)
 DEPTH_MATCH_FRAMES = 8  # depth images (or stamps of refused ones) kept for matching colour stamps
 DEPTH_WAIT_S = 0.05  # how long a colour frame waits for its depth image (in the worker)
-
-# name -> (default, description); every one is in config/localizer.yaml.
-PARAMETERS: dict[str, tuple[object, str]] = {
-    "checkpoint": ("", f"checkpoint NAME.safetensors (NAME.json next to it); empty: the shipped share/{PACKAGE}/{SHIPPED_MODEL}"),
-    "image_topic": (topics.IMAGE_TOPIC, "sensor_msgs/Image topic (with use_compressed: <image_topic>/compressed)"),
-    "depth_topic": ("", "aligned depth Image (32FC1 metres or 16UC1 mm, same stamp and size as the colour image); empty: predicted depth"),
-    "camera_info_topic": ("", "sensor_msgs/CameraInfo topic of the camera; empty: the checkpoint's default intrinsics"),
-    "use_compressed": (False, "subscribe to sensor_msgs/CompressedImage (PNG/JPEG) on <image_topic>/compressed"),
-    "map_frame": (topics.MAP_FRAME, "frame_id of the published global pose"),
-    "odom_frame": (topics.ODOM_FRAME, "frame_id of the published odometry"),
-    "base_frame": ("", "frame whose pose is published (vlocnet/pose, pose_with_covariance, odometry child_frame_id), placed by "
-                   "camera_extrinsics (no TF lookup); empty: the camera's pose, odometry child = the image's frame_id"),
-    "camera_extrinsics": (list(IDENTITY_VALUES), "the camera's pose in base_frame, T_base_camera: x y z (m) qw qx qy qz (unit quaternion); "
-                          "camera = the images' optical frame (x right, y down, z forward); must be identity when base_frame is empty"),
-    "max_gap_s": (topics.DEFAULT_MAX_GAP_S, "reset the temporal state when consecutive processed frames are further apart than this (seconds)"),
-    "publish_segmentation": (True, "publish the class-id mask on vlocnet/segmentation"),
-    "device": ("cpu", "torch device: cpu or cuda (cuda:N)"),
-    "num_threads": (0, "CPU inference threads (torch or ONNX Runtime); 0: all cores but one, at least 1"),
-    "backend": ("torch", "inference backend: torch, or onnx (ONNX Runtime; NAME.onnx next to the checkpoint or a cached export)"),
-}
-
-
-def default_checkpoint() -> Path:
-    """The shipped model (see :func:`vlocnetpp_core.checkpoint.shipped_checkpoint`), as a node error when missing."""
-    try:
-        return shipped_checkpoint()
-    except FileNotFoundError as err:
-        raise UserError(f"no 'checkpoint' parameter given and {err}; set one with --ros-args -p checkpoint:=/path/NAME.safetensors") from None
-
-
-def _check_parameters(p: dict) -> None:
-    if not p["max_gap_s"] > 0:
-        raise UserError(f"parameter max_gap_s must be > 0 seconds, got {p['max_gap_s']}")
-    if p["num_threads"] < 0:
-        raise UserError(f"parameter num_threads must be >= 0 (0: all cores but one), got {p['num_threads']}")
-    dev = str(p["device"])
-    if not (dev == "cpu" or dev == "cuda" or (dev.startswith("cuda:") and dev[5:].isdigit())):
-        raise UserError(f"parameter device must be 'cpu', 'cuda' or 'cuda:N', got {dev!r}")
-    if p["backend"] not in BACKENDS:
-        raise UserError(f"parameter backend must be one of {', '.join(BACKENDS)}, got {p['backend']!r}")
-    if not p["image_topic"]:
-        raise UserError("parameter image_topic is empty")
-
-
-def _extrinsics(p: dict) -> CameraExtrinsics | None:
-    """``camera_extrinsics`` checked (:class:`UserError`); None when the published pose is the camera's: without
-    ``base_frame``, or with identity extrinsics (then the base frame is only a name)."""
-    ext = CameraExtrinsics.from_values(p["camera_extrinsics"])
-    if p["base_frame"]:
-        return None if ext.is_identity else ext
-    if not ext.is_identity:
-        raise UserError(f"parameter camera_extrinsics is {ext.values()} but base_frame is empty: set base_frame to the frame "
-                        "the extrinsics place the camera in, or leave camera_extrinsics at identity [0, 0, 0, 1, 0, 0, 0]")
-    return None
-
 
 class LocalizerNode(Node):
     """The node; raises :class:`UserError` at construction when the checkpoint cannot be used."""
@@ -145,13 +94,15 @@ class LocalizerNode(Node):
                                                                       dynamic_typing=name == "camera_extrinsics"))
         p = {name: self.get_parameter(name).value for name in PARAMETERS}
         self.params = p
-        _check_parameters(p)
-        self.extrinsics = _extrinsics(p)
+        check_parameters(p)
+        self.extrinsics = extrinsics_of(p)
         checkpoint = Path(p["checkpoint"]) if p["checkpoint"] else default_checkpoint()
+        map_path = map_of(p, checkpoint, self.get_logger().warning)
         self.localizer = Localizer.from_checkpoint(checkpoint, device=p["device"], max_gap_s=p["max_gap_s"], num_threads=resolve_threads(p["num_threads"]),
-                                                   backend=p["backend"])
+                                                   backend=p["backend"], map_path=map_path, refine_every=p["refine_every"])
         w, h = self.localizer.input_size
-        self.stats = NodeStats(info={"checkpoint": str(checkpoint), "device": str(p["device"]), "backend": p["backend"], "input_size": f"{w}x{h}"})
+        self.stats = NodeStats(info={"checkpoint": str(checkpoint), "device": str(p["device"]), "backend": p["backend"], "input_size": f"{w}x{h}",
+                                     "map": str(map_path or "none")}, refinement=map_path is not None)
         self.warn = ThrottledLog(self.get_logger().warning)
         # a call site of its own: rclpy refuses two severities logged from one line (ThrottledLog's)
         self.note = ThrottledLog(lambda line: self.get_logger().info(line))
@@ -170,6 +121,9 @@ class LocalizerNode(Node):
             self.seg_pub = self.create_publisher(Image, topics.SEGMENTATION_TOPIC.lstrip("/"), 10)
         elif p["publish_segmentation"]:
             self.get_logger().info("the model has no semantic stream: vlocnet/segmentation is not advertised")
+        self.network_pose_pub = None  # the network's own pose beside the refined one: only with a map
+        if map_path is not None:
+            self.network_pose_pub = self.create_publisher(PoseStamped, topics.NETWORK_POSE_TOPIC.lstrip("/"), 10)
         self.diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS_TOPIC, 10)
         image_topic = p["image_topic"].rstrip("/") + "/compressed" if p["use_compressed"] else p["image_topic"]
         self._inputs = {image_topic: (CompressedImage if p["use_compressed"] else Image, self._on_image)}
@@ -190,8 +144,9 @@ class LocalizerNode(Node):
         self._worker.start()
         extrinsics = (self.extrinsics or CameraExtrinsics.identity()).values()
         pose_of = f"{p['base_frame']} (camera_extrinsics {extrinsics})" if p["base_frame"] else "the camera"
+        refining = f"refined against {map_path} every {p['refine_every']} frame(s)" if map_path else "no refinement (no map)"
         self.get_logger().info(f"localizer ready: {checkpoint} on {p['device']} ({p['backend']}, network input {w}x{h}), camera {image_topic}, "
-                               f"publishing the pose of {pose_of}")
+                               f"publishing the pose of {pose_of}, {refining}")
 
     # ------------------------------------------------------------------ subscriptions
 
@@ -280,17 +235,21 @@ class LocalizerNode(Node):
         if result.reset_reason not in (None, "start"):
             self.note(f"reset.{result.reset_reason}", f"temporal state reset ({result.reset_reason}) at stamp {stamp:.3f}")
         frame = msg.header.frame_id
+        network = (result.network_t, result.network_q)
         if self.extrinsics is not None:
+            network = base_pose(*network, self.extrinsics)
             result = to_base_frame(result, self.extrinsics)
         pose_header = Header(stamp=msg.header.stamp, frame_id=self.params["map_frame"])
         self.pose_pub.publish(conversions.pose_stamped(result, pose_header))
+        if self.network_pose_pub is not None:
+            self.network_pose_pub.publish(PoseStamped(header=pose_header, pose=conversions.pose_msg(*network)))
         self.pose_cov_pub.publish(conversions.pose_with_covariance(result, pose_header))
         self.odom_pub.publish(conversions.odometry(result, Header(stamp=msg.header.stamp, frame_id=self.params["odom_frame"]),
                                                    self.params["base_frame"] or frame))
         if self.seg_pub is not None:
             self.seg_pub.publish(conversions.mask_to_image(result.mask, Header(stamp=msg.header.stamp, frame_id=frame)))
         now = time.monotonic()
-        self.stats.processed_frame(now, now - arrival, result.reset_reason)
+        self.stats.processed_frame(now, now - arrival, result.reset_reason, result.source, result.refine_status)
 
     def _matching_depth(self, stamp):
         """Depth (metres) with exactly this stamp, waiting up to ``DEPTH_WAIT_S`` for it; None: use the predicted depth

@@ -6,7 +6,8 @@ install tree, else ``python -m vlocnetpp_ros.node``) runs as a subprocess in a p
 mixed in. This bridge publishes the bag's camera images (raw or compressed), ``CameraInfo`` and,
 with ``use_depth``, depth to it as the stored CDR bytes (no re-encoding), and writes the output
 bag as :func:`vlocnetpp_core.bag.replay.replay` does: the input topics plus what the node
-published on ``vlocnet/pose``, ``vlocnet/pose_with_covariance``, ``vlocnet/odometry`` and ``vlocnet/segmentation`` (renamed to
+published on ``vlocnet/pose``, ``vlocnet/pose_with_covariance``, ``vlocnet/odometry``, ``vlocnet/segmentation`` and,
+with a keyframe map (``--map``, the node's parameter ``map``), ``vlocnet/network_pose`` (renamed to
 ``/vlocnet/*``), logged at the log time of the image they answer. The topics it waits for are derived
 from the checkpoint (:func:`vlocnetpp_core.bag.replay.checkpoint_output_types`): a pose-only model's
 node advertises no segmentation, so none is expected (a frame is answered by its three pose topics).
@@ -38,7 +39,7 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from vlocnetpp_core.bag import messages, topics
 from vlocnetpp_core.bag.bagfile import BagReader, BagWriter
 from vlocnetpp_core.bag.replay import (
-    OUTPUT_TYPES,
+    ALL_OUTPUT_TYPES,
     ReplaySummary,
     checkpoint_output_types,
     choose_image_topic,
@@ -52,7 +53,7 @@ from vlocnetpp_ros.dds_client import RELIABLE as _RELIABLE
 from vlocnetpp_ros.dds_client import DdsClient
 
 _OUTPUT_TYPES = {topics.POSE_TOPIC: PoseStamped, topics.POSE_WITH_COVARIANCE_TOPIC: PoseWithCovarianceStamped,
-                 topics.ODOMETRY_TOPIC: Odometry, topics.SEGMENTATION_TOPIC: Image}
+                 topics.ODOMETRY_TOPIC: Odometry, topics.SEGMENTATION_TOPIC: Image, topics.NETWORK_POSE_TOPIC: PoseStamped}
 CAMERA_INFO_SETTLE_S = 0.5
 
 
@@ -72,8 +73,10 @@ def localizer_command() -> list[str]:
     return [sys.executable, "-m", "vlocnetpp_ros.node"]
 
 
-def node_arguments(namespace: str, checkpoint: str | Path, compressed: bool, use_depth: bool, max_gap_s: float, device: str) -> list[str]:
-    """``--ros-args`` for the node: inputs on ``<namespace>/camera/...``, outputs under ``<namespace>/vlocnet``."""
+def node_arguments(namespace: str, checkpoint: str | Path, compressed: bool, use_depth: bool, max_gap_s: float, device: str,
+                   map_path: str | Path | None = None, refine_every: int = 1) -> list[str]:
+    """``--ros-args`` for the node: inputs on ``<namespace>/camera/...``, outputs under ``<namespace>/vlocnet``;
+    ``map_path``: the keyframe map to refine against every ``refine_every``-th frame (None: no refinement)."""
     params = {
         "checkpoint": str(Path(checkpoint).resolve()),
         "image_topic": f"{namespace}/camera/image",
@@ -82,6 +85,8 @@ def node_arguments(namespace: str, checkpoint: str | Path, compressed: bool, use
         "depth_topic": f"{namespace}/camera/depth" if use_depth else "",
         "max_gap_s": repr(float(max_gap_s)),
         "device": device,
+        "map": "" if map_path is None else str(Path(map_path).resolve()),
+        "refine_every": str(int(refine_every)),
     }
     args = ["--ros-args", "-r", f"__ns:={namespace}"]
     for name, value in params.items():
@@ -149,9 +154,11 @@ class _Bridge(DdsClient):
 def replay_through_node(bag: str | Path, out: str | Path, checkpoint: str | Path, image_topic: str | None = None,
                         rate_hz: float | None = None, max_gap_s: float = 1.0, use_depth: bool = False, device: str = "cpu",
                         force: bool = False, progress: bool = True, startup_timeout_s: float = 120.0,
-                        answer_timeout_s: float = 30.0, quiet_s: float = 3.0) -> ReplaySummary:
+                        answer_timeout_s: float = 30.0, quiet_s: float = 3.0, map_path: str | Path | None = None,
+                        refine_every: int = 1) -> ReplaySummary:
     """Replay ``bag`` through the node into ``out`` (see module doc).
 
+    ``map_path``: a keyframe map file the node refines against every ``refine_every``-th frame (None: none).
     ``rate_hz``: None (the bag's rate), Hz, or ``math.inf`` (lockstep). In lockstep a frame the
     node does not answer within ``answer_timeout_s`` is counted as skipped (``no_answer``); when
     paced, the replay ends once every frame is answered or nothing arrived for ``quiet_s``
@@ -162,7 +169,7 @@ def replay_through_node(bag: str | Path, out: str | Path, checkpoint: str | Path
     summary = ReplaySummary(Path(out))
     namespace = f"/vlocnetpp_replay_{os.getpid()}"
     start = time.perf_counter()
-    outputs = checkpoint_output_types(checkpoint)  # a clear error now rather than a node that fails to start
+    outputs = checkpoint_output_types(checkpoint, map_path is not None)  # a clear error now rather than a node that fails to start
     with sigterm_as_interrupt(), BagReader(bag) as reader, ExitStack() as stack:
         topic = choose_image_topic(reader.topics, image_topic, reader.path)
         compressed = reader.topics[topic] == messages.COMPRESSED_IMAGE
@@ -171,7 +178,8 @@ def replay_through_node(bag: str | Path, out: str | Path, checkpoint: str | Path
         writer = BagWriter(out, force=force)  # refuses an existing output before the node starts
         bridge = _Bridge(namespace, compressed, use_depth, outputs)
         stack.callback(bridge.close)
-        node = _NodeProcess(localizer_command() + node_arguments(namespace, checkpoint, compressed, use_depth, max_gap_s, device))
+        node = _NodeProcess(localizer_command() + node_arguments(namespace, checkpoint, compressed, use_depth, max_gap_s, device,
+                                                                 map_path, refine_every))
         stack.callback(node.stop)
         bar = stack.enter_context(tqdm(total=reader.count(topic), unit="frame", desc="replay (node)", disable=not progress, file=sys.stderr))
         deadline = time.monotonic() + startup_timeout_s
@@ -207,7 +215,7 @@ class _Player:
         """Write what the node published since the last call."""
         while self.bridge.received:
             out_topic, data = self.bridge.received.popleft()
-            ns = messages.stamp_ns(messages.deserialize(data, OUTPUT_TYPES[out_topic]))
+            ns = messages.stamp_ns(messages.deserialize(data, ALL_OUTPUT_TYPES[out_topic]))
             self.writer.write_raw(out_topic, self.log_time_of.get(ns, ns), data)
             self.answered[ns] += 1
             self.last_answer = time.monotonic()
@@ -225,7 +233,7 @@ class _Player:
         clock_start: tuple[float, int] | None = None  # (monotonic time, stamp ns) of the first image
         for group in groups_by_log_time(self.reader.messages(raw=True)):
             for t, ns, raw in group:
-                if t in OUTPUT_TYPES:
+                if t in ALL_OUTPUT_TYPES:
                     continue
                 self.writer.write_raw(t, ns, raw)
                 if t == topics.CAMERA_INFO_TOPIC:
@@ -276,7 +284,7 @@ def main(argv: list[str] | None = None) -> int:
     """``python -m vlocnetpp_ros.replay_bridge``: what ``vlocnetpp replay --through-node`` runs (same flags)."""
     import argparse
 
-    from vlocnetpp_core.bag.replay import add_arguments, parse_rate
+    from vlocnetpp_core.bag.replay import add_arguments, map_argument, parse_rate
     from vlocnetpp_core.errors import UserError
 
     parser = argparse.ArgumentParser(prog="vlocnetpp replay --through-node", description=__doc__.splitlines()[0])
@@ -285,7 +293,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         summary = replay_through_node(args.bag, args.out, args.checkpoint, image_topic=args.image_topic, rate_hz=parse_rate(args.rate),
                                       max_gap_s=args.max_gap_s, use_depth=args.use_depth, device=args.device,
-                                      force=args.force, progress=not args.no_progress)
+                                      force=args.force, progress=not args.no_progress, map_path=map_argument(args),
+                                      refine_every=args.refine_every)
     except UserError as err:
         print(f"vlocnetpp replay: error: {err}", file=sys.stderr)
         return 2

@@ -11,13 +11,20 @@ sequences where consecutive stamps are more than ``--max-gap-s`` apart (default 
 sequences) and named
 ``seq-00``, ``seq-01``, ... in time order. Per sequence:
 
-* global pose: ``/vlocnet/pose`` against the ground truth;
+* global pose: ``/vlocnet/pose`` against the ground truth; when the bag has ``/vlocnet/network_pose`` (a localizer
+  refining against a keyframe map) that is the network's pose (``pose``, the row ``overall (network)``) and
+  ``/vlocnet/pose``, the published one (refined, propagated or the network's), is scored as ``pose_refined`` (the
+  row ``refined``; same keys as ``pose``), on the frames that have both;
 * odometry: the relative poses ``T_{k-1}^{-1} T_k`` between consecutive ``/vlocnet/odometry``
   poses (the localizer's accumulated odometry), chained from the true first pose as ``evaluate`` does;
 * segmentation: ``/vlocnet/segmentation`` (``mono8`` class ids) against ``/camera/semantic`` when both
   exist, at the image resolution (as the node publishes masks and ``evaluate`` scores them). A bag
   without ``/vlocnet/segmentation`` (the replay of a pose-only model) gets no segmentation entries
   or columns, as ``evaluate`` of that model.
+
+Baselines on the bag's camera images: ``--reference`` the retrieval row (the nearest reference image's pose),
+``--map MAP.npz`` the structure-based row (retrieval + SIFT + PnP against the keyframe map, no network:
+:meth:`vlocnetpp_core.mapping.refiner.Refiner.locate`, as ``evaluate --map``; intrinsics from ``/camera/camera_info``).
 
 :func:`vlocnetpp_core.metrics.evaluate_sequences` computes the report, so the numbers equal
 ``vlocnetpp evaluate`` on the same frames (timing is not in a bag: it is reported as ``-``).
@@ -38,9 +45,11 @@ from vlocnetpp_core.bag import messages
 from vlocnetpp_core.bag.bagfile import BagReader
 from vlocnetpp_core.bag.pose_source import TfCollector
 from vlocnetpp_core.bag.topics import (
+    CAMERA_INFO_TOPIC,
     DEFAULT_MAX_GAP_S,
     GROUND_TRUTH_TOPIC,
     IMAGE_TOPICS,
+    NETWORK_POSE_TOPIC,
     ODOMETRY_TOPIC,
     POSE_TOPIC,
     SEGMENTATION_TOPIC,
@@ -51,7 +60,7 @@ from vlocnetpp_core.bag.topics import (
 from vlocnetpp_core.classes import CLASS_NAMES
 from vlocnetpp_core.errors import DataError, UserError
 from vlocnetpp_core.geometry import matrix_to_quat, pose_to_matrix
-from vlocnetpp_core.metrics import SequenceResult, confusion_matrix, evaluate_sequences
+from vlocnetpp_core.metrics import DEFAULT_THRESHOLDS, SequenceResult, confusion_matrix, evaluate_sequences
 from vlocnetpp_core.report import (
     add_baseline,
     add_report_arguments,
@@ -67,7 +76,9 @@ _PENDING_LIMIT = 64  # label maps / masks waiting for their partner stamp (a par
 @dataclass
 class MatchedFrames:
     """The frames of a bag with ground truth and a global pose: ``stamps (N,)`` ns, poses ``(N, 3)`` /
-    ``(N, 4)`` ``(w, x, y, z)``, odometry poses (rows NaN where missing) and ``sequences`` (ranges)."""
+    ``(N, 4)`` ``(w, x, y, z)``, odometry poses (rows NaN where missing) and ``sequences`` (ranges). ``pred``:
+    the network's pose (``/vlocnet/network_pose`` when the bag has it, else ``/vlocnet/pose``); ``refined``: the
+    published ``/vlocnet/pose`` of a bag with ``/vlocnet/network_pose``, else None."""
 
     stamps: np.ndarray
     true_t: np.ndarray
@@ -77,6 +88,8 @@ class MatchedFrames:
     odom_t: np.ndarray
     odom_q: np.ndarray
     sequences: list[range]
+    refined_t: np.ndarray | None = None
+    refined_q: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -109,7 +122,8 @@ def read_matched_frames(reader: BagReader, ground_truth: GroundTruth = GroundTru
         if topic not in reader.topics:
             raise DataError(reader.path, f"no {topic} topic (topics: {', '.join(sorted(reader.topics)) or 'none'})")
     from_tf = ground_truth.tf is not None
-    pose_topics = [POSE_TOPIC, ODOMETRY_TOPIC] if from_tf else [POSE_TOPIC, ODOMETRY_TOPIC, ground_truth.topic]
+    refined = NETWORK_POSE_TOPIC in reader.topics
+    pose_topics = [POSE_TOPIC, ODOMETRY_TOPIC] + ([NETWORK_POSE_TOPIC] if refined else []) + ([] if from_tf else [ground_truth.topic])
     poses: dict[str, dict[int, tuple[np.ndarray, np.ndarray]]] = {t: {} for t in pose_topics}
     tf = TfCollector()
     for topic, _, msg in reader.messages({*pose_topics, *ground_truth.topics}):
@@ -117,9 +131,10 @@ def read_matched_frames(reader: BagReader, ground_truth: GroundTruth = GroundTru
             poses[topic][messages.stamp_ns(msg)] = messages.stamped_pose(msg)
         else:
             tf.add(msg, static=topic == TF_STATIC_TOPIC)
-    pred, odom = poses[POSE_TOPIC], poses[ODOMETRY_TOPIC]
+    published, odom = poses[POSE_TOPIC], poses[ODOMETRY_TOPIC]
+    pred = poses[NETWORK_POSE_TOPIC] if refined else published
     gt = _tf_poses_at(tf, ground_truth, sorted(pred)) if from_tf else poses[ground_truth.topic]
-    stamps = np.array(sorted(gt.keys() & pred.keys()), dtype=np.int64)
+    stamps = np.array(sorted(gt.keys() & pred.keys() & published.keys()), dtype=np.int64)
     if len(stamps) == 0:
         raise DataError(reader.path, f"no {POSE_TOPIC} message has the stamp of a ground-truth pose "
                                      f"({'TF ' + ' -> '.join(ground_truth.tf) if from_tf else ground_truth.topic})")
@@ -129,7 +144,8 @@ def read_matched_frames(reader: BagReader, ground_truth: GroundTruth = GroundTru
         return np.array([source.get(s, nan_pose)[part] for s in stamps.tolist()], dtype=np.float64).reshape(-1, width)
 
     return MatchedFrames(stamps, column(gt, 0, 3), column(gt, 1, 4), column(pred, 0, 3), column(pred, 1, 4),
-                         column(odom, 0, 3), column(odom, 1, 4), split_on_gaps(stamps, max_gap_s))
+                         column(odom, 0, 3), column(odom, 1, 4), split_on_gaps(stamps, max_gap_s),
+                         column(published, 0, 3) if refined else None, column(published, 1, 4) if refined else None)
 
 
 def _tf_poses_at(tf: TfCollector, ground_truth: GroundTruth, stamps: list[int]) -> dict[int, tuple[np.ndarray, np.ndarray]]:
@@ -196,37 +212,72 @@ def score_segmentation(reader: BagReader, where: dict[int, tuple[int, int]], sam
     return scores
 
 
-def describe_frames(reader: BagReader, where: dict[int, tuple[int, int]]) -> list[np.ndarray]:
-    """Pass 3: the retrieval descriptors ``(N_k, D)`` of the camera images of the frames in ``where`` (stamp ->
-    (sequence, position)), per sequence; ``DataError`` when the bag has no camera image for one of them."""
+def describe_frames(reader: BagReader, where: dict[int, tuple[int, int]],
+                    refiner=None) -> tuple[list[np.ndarray], list[tuple[np.ndarray, np.ndarray]] | None]:
+    """Pass 3: per sequence, the retrieval descriptors ``(N_k, D)`` of the camera images of the frames in ``where``
+    (stamp -> (sequence, position)) and, with ``refiner`` (a :class:`~vlocnetpp_core.mapping.refiner.Refiner`), the
+    structure-based baseline's poses ``(t (N_k, 3), q (N_k, 4))`` of those images (``evaluate``'s ``_locate``; the
+    intrinsics of the latest ``/camera/camera_info``, that of the image's log time included), else None.
+    ``DataError`` when the bag has no camera image for one of them, or (with ``refiner``) no camera info before it."""
+    from types import SimpleNamespace
+
+    from vlocnetpp_core.bag.replay import groups_by_log_time
+    from vlocnetpp_core.evaluate import _locate
     from vlocnetpp_core.retrieval import describe
 
     image_topic = next((t for t in IMAGE_TOPICS if t in reader.topics), None)
     if image_topic is None:
-        raise DataError(reader.path, f"no camera image topic ({' or '.join(IMAGE_TOPICS)}) to describe for the retrieval baseline")
+        raise DataError(reader.path, f"no camera image topic ({' or '.join(IMAGE_TOPICS)}) to describe for the baselines")
     lengths = np.bincount([k for k, _ in where.values()])
     out: list[np.ndarray | None] = [None] * len(lengths)
     seen = [np.zeros(n, bool) for n in lengths]
-    for _, _, msg in reader.messages([image_topic]):
-        ns = messages.stamp_ns(msg)
-        if ns in where:
+    located = None if refiner is None else [(np.zeros((n, 3)), np.zeros((n, 4))) for n in lengths]
+    intrinsics = None
+    for group in groups_by_log_time(reader.messages([image_topic] + ([CAMERA_INFO_TOPIC] if refiner is not None else []))):
+        for topic, _, msg in group:
+            if topic == CAMERA_INFO_TOPIC:
+                intrinsics = messages.intrinsics_from_camera_info(msg)
+        for topic, _, msg in group:
+            ns = messages.stamp_ns(msg)
+            if topic != image_topic or ns not in where:
+                continue
             k, position = where[ns]
-            d = describe(messages.any_image_to_rgb(msg))
+            rgb = messages.any_image_to_rgb(msg)
+            d = describe(rgb)
             if out[k] is None:
                 out[k] = np.zeros((lengths[k], len(d)), np.float32)
             out[k][position], seen[k][position] = d, True
+            if located is not None:
+                if intrinsics is None:
+                    raise DataError(reader.path, f"--map: no {CAMERA_INFO_TOPIC} up to the image at stamp {ns / 1e9:.9f} s "
+                                                 "(the structure-based baseline needs the camera's intrinsics)")
+                t, q, _ = _locate(refiner, SimpleNamespace(image=rgb, intrinsics=intrinsics), d)
+                located[k][0][position], located[k][1][position] = t, q
     for k, ok in enumerate(seen):
         if not ok.all():
             raise DataError(reader.path, f"{image_topic} has no image for {int((~ok).sum())} scored frames of sequence {k}")
-    return out
+    return out, located
 
 
-def collect_results(path: str | Path, ground_truth: GroundTruth = GroundTruth(), max_gap_s: float = DEFAULT_MAX_GAP_S,
-                    samples: int = 0, num_classes: int = len(CLASS_NAMES),
-                    describe: bool = False) -> tuple[list[SequenceResult], list[np.ndarray] | None]:
-    """One :class:`SequenceResult` per sequence of the bag at ``path`` (see the module doc); ``samples``
-    frames per sequence are kept for the segmentation strip plot. With ``describe``, also the retrieval
-    descriptors of each sequence's camera images (:func:`describe_frames`), else None."""
+@dataclass
+class BagResults:
+    """What :func:`collect_bag` read: per sequence the ``results`` (the network's pose as the prediction), the published
+    poses of a refining localizer (``refined``: ``(t (N_k, 3), q (N_k, 4))``, None without ``/vlocnet/network_pose``),
+    the retrieval ``descriptors`` and the structure-based baseline's poses (``structure``), each None when not asked
+    for; ``segmentation``: whether the bag has ``/vlocnet/segmentation``."""
+
+    results: list[SequenceResult]
+    refined: list[tuple[np.ndarray, np.ndarray]] | None = None
+    descriptors: list[np.ndarray] | None = None
+    structure: list[tuple[np.ndarray, np.ndarray]] | None = None
+    segmentation: bool = True
+
+
+def collect_bag(path: str | Path, ground_truth: GroundTruth = GroundTruth(), max_gap_s: float = DEFAULT_MAX_GAP_S,
+                samples: int = 0, num_classes: int = len(CLASS_NAMES), describe: bool = False, refiner=None) -> BagResults:
+    """One :class:`SequenceResult` per sequence of the bag at ``path`` (see the module doc); ``samples`` frames per
+    sequence are kept for the segmentation strip plot. With ``describe`` also the retrieval descriptors of each
+    sequence's camera images, with ``refiner`` the structure-based baseline's poses (:func:`describe_frames`)."""
     from vlocnetpp_core.report import sample_positions, sequence_name
 
     with BagReader(path) as reader:
@@ -234,17 +285,75 @@ def collect_results(path: str | Path, ground_truth: GroundTruth = GroundTruth(),
         where = {s: (k, p) for k, rng in enumerate(frames.sequences) for p, s in enumerate(frames.stamps[rng].tolist())}
         sample_stamps = {int(frames.stamps[rng[p]]) for rng in frames.sequences for p in sample_positions(len(rng), samples)}
         seg = score_segmentation(reader, where, sample_stamps, num_classes)
-        descriptors = describe_frames(reader, where) if describe else None
-    results = []
+        descriptors, structure = describe_frames(reader, where, refiner) if describe or refiner is not None else (None, None)
+        segmentation = SEGMENTATION_TOPIC in reader.topics
+    out = BagResults([], None if frames.refined_t is None else [], descriptors if describe else None, structure, segmentation)
     for k, rng in enumerate(frames.sequences):
         rel = relative_odometry(frames.odom_t[rng], frames.odom_q[rng])
-        results.append(SequenceResult(
+        out.results.append(SequenceResult(
             name=sequence_name(k), stamps=frames.stamps[rng] / 1e9,
             true_t=frames.true_t[rng], true_q=frames.true_q[rng], pred_t=frames.pred_t[rng], pred_q=frames.pred_q[rng],
             rel_t=None if rel is None else rel[0], rel_q=None if rel is None else rel[1],
             confusion=seg.confusion[k], ms=None, samples=tuple(s[1:] for s in sorted(seg.samples[k], key=lambda s: s[0])),
         ))
-    return results, descriptors
+        if out.refined is not None:
+            out.refined.append((frames.refined_t[rng], frames.refined_q[rng]))
+    return out
+
+
+def collect_results(path: str | Path, ground_truth: GroundTruth = GroundTruth(), max_gap_s: float = DEFAULT_MAX_GAP_S,
+                    samples: int = 0, num_classes: int = len(CLASS_NAMES),
+                    describe: bool = False) -> tuple[list[SequenceResult], list[np.ndarray] | None]:
+    """``(results, descriptors)`` of :func:`collect_bag`."""
+    bag = collect_bag(path, ground_truth, max_gap_s, samples, num_classes, describe)
+    return bag.results, bag.descriptors
+
+
+def add_refined_pose(report: dict, results: list[SequenceResult], poses: list[tuple[np.ndarray, np.ndarray]],
+                     thresholds=DEFAULT_THRESHOLDS) -> dict:
+    """Score the published poses of a refining localizer (``/vlocnet/pose`` beside ``/vlocnet/network_pose``) on the
+    frames of ``results`` as ``pose_refined`` (overall and per sequence; the keys of ``pose``), and store
+    ``overall.refined_share``: the share of frames whose published pose is not the network's (refined or propagated)."""
+    from vlocnetpp_core.mapping.evaluation import with_poses
+
+    scored = evaluate_sequences(with_poses(results, poses), thresholds, [1.0])
+    report["overall"]["pose_refined"] = scored["overall"]["pose"]
+    for name, part in scored["per_sequence"].items():
+        report["per_sequence"][name]["pose_refined"] = part["pose"]
+    changed = [np.any(t != r.pred_t, axis=1) | np.any(q != r.pred_q, axis=1) for r, (t, q) in zip(results, poses, strict=True)]
+    report["overall"]["refined_share"] = float(np.mean(np.concatenate(changed)))
+    return report
+
+
+def refined_share_line(report: dict) -> str | None:
+    """One line under the table on how many published poses were not the network's, or None (no refinement)."""
+    share = report["overall"].get("refined_share")
+    if share is None:
+        return None
+    return (f"refined: {100 * share:.1f} % of the frames' {POSE_TOPIC} is not the network's {NETWORK_POSE_TOPIC} "
+            "(refined against the map, or propagated by the odometry)")
+
+
+def bag_report(path: str | Path, ground_truth: GroundTruth = GroundTruth(), max_gap_s: float = DEFAULT_MAX_GAP_S, samples: int = 0,
+               thresholds=DEFAULT_THRESHOLDS, lengths: list[float] | None = None, reference=None,
+               refiner=None) -> tuple[dict, list[SequenceResult]]:
+    """``(report, results)`` of the bag at ``path`` (see the module doc): the network's pose, the refined one when the
+    bag has ``/vlocnet/network_pose``, the retrieval baseline against ``reference`` (a
+    :class:`~vlocnetpp_core.retrieval.ReferenceSet`) and the structure-based one against ``refiner``'s map, on the same frames."""
+    from vlocnetpp_core.mapping.evaluation import add_structure_baseline
+
+    bag = collect_bag(path, ground_truth, max_gap_s, samples, describe=reference is not None, refiner=refiner)
+    report = evaluate_sequences(bag.results, thresholds, lengths, CLASS_NAMES)
+    if not bag.segmentation:
+        without_segmentation(report, f"none: the bag has no {SEGMENTATION_TOPIC} (a model without a semantic stream)")
+    if reference is not None:
+        add_baseline(report, bag.results, bag.descriptors, reference, thresholds)
+    if bag.refined is not None:
+        add_refined_pose(report, bag.results, bag.refined, thresholds)
+    if refiner is not None:
+        add_structure_baseline(report, bag.results, bag.structure, refiner.map.source, len(refiner.map), thresholds)
+    report["meta"] = {"bag": str(path)}
+    return report, bag.results
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -263,6 +372,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help=f"a stamp gap longer than this starts a new sequence (default {DEFAULT_MAX_GAP_S:g} s)")
     add_report_arguments(p, "retrieval baseline reference: the training dataset folder of the model (its train split) or a .npz "
                             "from ReferenceSet.save, e.g. models/vlocnetpp_lite.reference.npz (default: no baseline)")
+    p.add_argument("--map", default=None, metavar="MAP.npz",
+                   help="keyframe map (vlocnetpp map build, e.g. models/vlocnetpp_lite.map.npz): adds the structure-based baseline "
+                        "(retrieval + SIFT + PnP against the map, no network) on the bag's images; needs /camera/camera_info")
 
 
 def ground_truth_of(args: argparse.Namespace) -> GroundTruth:
@@ -276,22 +388,25 @@ def ground_truth_of(args: argparse.Namespace) -> GroundTruth:
 
 
 def run(args: argparse.Namespace) -> int:
+    from vlocnetpp_core.checkpoint import MAP_AUTO
     from vlocnetpp_core.retrieval import open_reference
 
     if not (math.isfinite(args.max_gap_s) and args.max_gap_s > 0):
         raise UserError(f"--max-gap-s must be a positive number of seconds, got {args.max_gap_s}")
+    if args.map == MAP_AUTO:
+        raise UserError(f"--map {MAP_AUTO}: evaluate-bag has no checkpoint to find NAME.map.npz beside; give the map file")
     thresholds, lengths = check_report_args(args)
     reference = open_reference(args.reference) if args.reference else None
-    results, descriptors = collect_results(args.bag, ground_truth_of(args), args.max_gap_s, args.samples if args.plots else 0,
-                                           describe=reference is not None)
-    report = evaluate_sequences(results, thresholds, lengths, CLASS_NAMES)
-    with BagReader(args.bag) as reader:
-        if SEGMENTATION_TOPIC not in reader.topics:
-            without_segmentation(report, f"none: the bag has no {SEGMENTATION_TOPIC} (a model without a semantic stream)")
-    if reference is not None:
-        add_baseline(report, results, descriptors, reference, thresholds)
-    report["meta"] = {"bag": str(args.bag)}
+    refiner = None
+    if args.map is not None:
+        from vlocnetpp_core.mapping.refiner import Refiner
+
+        refiner = Refiner.from_file(args.map)
+    report, results = bag_report(args.bag, ground_truth_of(args), args.max_gap_s, args.samples if args.plots else 0, thresholds, lengths,
+                                 reference, refiner)
     print(format_report(report, {r.name: len(r.stamps) for r in results}))
+    if refined_share_line(report):
+        print(refined_share_line(report))
     if any(r.rel_t is None for r in results):
         print(f"note: {ODOMETRY_TOPIC} missing for some frames: no odometry metrics for those sequences", file=sys.stderr)
     write_outputs(report, results, CLASS_NAMES, args.json, args.trajectories, args.plots)

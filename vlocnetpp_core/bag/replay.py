@@ -7,10 +7,15 @@ The output bag holds every input topic unchanged plus, per processed image (stam
 ``/vlocnet/pose_with_covariance`` ``geometry_msgs/PoseWithCovarianceStamped`` the same pose with its 6x6 covariance
 ``/vlocnet/odometry``     ``nav_msgs/Odometry``         accumulated odometry in ``odom``, child = the image frame
 ``/vlocnet/segmentation`` ``sensor_msgs/Image``         ``mono8`` class ids at the image resolution
+``/vlocnet/network_pose`` ``geometry_msgs/PoseStamped`` with ``--map`` only: the network's own pose
 ===================== ========================= ==============================================
 
 A pose-only model (no semantic stream, e.g. config ``lite_pose``) gives no segmentation: the output
 bag then has no ``/vlocnet/segmentation`` topic (:func:`output_types`, :func:`checkpoint_output_types`).
+With ``--map`` (a keyframe map, or ``auto``: ``NAME.map.npz`` beside the checkpoint) the localizer refines
+its pose against the map every ``--refine-every``-th frame, as the node's parameters ``map`` and
+``refine_every`` do: ``/vlocnet/pose`` and ``/vlocnet/pose_with_covariance`` then hold the published
+(refined, propagated or network) pose, ``/vlocnet/network_pose`` the network's own.
 
 In process (default) the images are read in log-time order and given to
 :class:`~vlocnetpp_core.localizer.Localizer` (the node's code path) with the intrinsics of the
@@ -47,6 +52,7 @@ from vlocnetpp_core.bag.topics import (
     DEPTH_TOPIC,
     IMAGE_TOPIC,
     MAP_FRAME,
+    NETWORK_POSE_TOPIC,
     ODOM_FRAME,
     ODOMETRY_TOPIC,
     POSE_TOPIC,
@@ -60,15 +66,19 @@ from vlocnetpp_core.programs import program_command
 
 OUTPUT_TYPES = {POSE_TOPIC: messages.POSE_STAMPED, POSE_WITH_COVARIANCE_TOPIC: messages.POSE_WITH_COVARIANCE_STAMPED,
                 ODOMETRY_TOPIC: messages.ODOMETRY, SEGMENTATION_TOPIC: messages.IMAGE}
+REFINEMENT_TYPES = {NETWORK_POSE_TOPIC: messages.POSE_STAMPED}  # with a map: the network's own pose
+ALL_OUTPUT_TYPES = {**OUTPUT_TYPES, **REFINEMENT_TYPES}  # every /vlocnet/* output: what a replay replaces in its input bag
 
 
-def output_types(segmentation: bool = True) -> dict[str, str]:
+def output_types(segmentation: bool = True, network_pose: bool = False) -> dict[str, str]:
     """The ``/vlocnet/*`` topics (and types) written per frame: :data:`OUTPUT_TYPES`, without
-    ``/vlocnet/segmentation`` for a model that has no semantic stream (``segmentation`` False)."""
-    return {t: ty for t, ty in OUTPUT_TYPES.items() if segmentation or t != SEGMENTATION_TOPIC}
+    ``/vlocnet/segmentation`` for a model that has no semantic stream (``segmentation`` False), and
+    with ``/vlocnet/network_pose`` when the localizer refines against a map (``network_pose``)."""
+    out = {t: ty for t, ty in OUTPUT_TYPES.items() if segmentation or t != SEGMENTATION_TOPIC}
+    return {**out, **REFINEMENT_TYPES} if network_pose else out
 
 
-def checkpoint_output_types(checkpoint: str | Path) -> dict[str, str]:
+def checkpoint_output_types(checkpoint: str | Path, network_pose: bool = False) -> dict[str, str]:
     """:func:`output_types` of the model of a checkpoint, from its sidecar (the weights are not read);
     raises ``DataError`` naming the file when the sidecar is missing or malformed."""
     from vlocnetpp_core.checkpoint import checkpoint_paths, read_checkpoint_meta
@@ -76,18 +86,20 @@ def checkpoint_output_types(checkpoint: str | Path) -> dict[str, str]:
 
     meta = read_checkpoint_meta(checkpoint)
     config = ModelConfig.from_dict(meta["model_config"], source=f"{checkpoint_paths(checkpoint)[1]} (model_config)")
-    return output_types("seg" in config.tasks)
+    return output_types("seg" in config.tasks, network_pose)
 
 
 @dataclass
 class ReplaySummary:
-    """What a replay did: images ``processed``, ``skipped`` per reason, ``resets`` per reason (in process only),
-    ``wall_s`` spent replaying and ``startup_s`` spent starting the node (through the node only)."""
+    """What a replay did: images ``processed``, ``skipped`` per reason, ``resets`` per reason and ``sources`` of the
+    published pose with a map (in process only), ``wall_s`` spent replaying and ``startup_s`` spent starting the
+    node (through the node only)."""
 
     path: Path
     processed: int = 0
     skipped: Counter = field(default_factory=Counter)
     resets: Counter = field(default_factory=Counter)
+    sources: Counter = field(default_factory=Counter)
     wall_s: float = 0.0
     startup_s: float = 0.0
 
@@ -97,6 +109,8 @@ class ReplaySummary:
             text += f", after {self.startup_s:.1f} s of node start-up"
         if self.resets:
             text += "\n  temporal state resets: " + ", ".join(f"{k} {v}" for k, v in sorted(self.resets.items()))
+        if self.sources:
+            text += "\n  published pose: " + ", ".join(f"{k} {v}" for k, v in sorted(self.sources.items()))
         if self.skipped:
             text += "\n  skipped frames: " + ", ".join(f"{k} {v}" for k, v in sorted(self.skipped.items()))
         return text
@@ -104,7 +118,7 @@ class ReplaySummary:
 
 def choose_image_topic(topics: dict[str, str], wanted: str | None, path: Path) -> str:
     """``wanted``, else ``/camera/image_raw``, else ``/camera/image_raw/compressed``, else the only image topic."""
-    images = [t for t, ty in topics.items() if ty in (messages.IMAGE, messages.COMPRESSED_IMAGE) and t not in OUTPUT_TYPES]
+    images = [t for t, ty in topics.items() if ty in (messages.IMAGE, messages.COMPRESSED_IMAGE) and t not in ALL_OUTPUT_TYPES]
     if wanted is not None:
         if topics.get(wanted) not in (messages.IMAGE, messages.COMPRESSED_IMAGE):
             raise DataError(path, f"--image-topic {wanted}: no Image or CompressedImage topic of that name (image topics: {', '.join(images) or 'none'})")
@@ -130,9 +144,10 @@ def groups_by_log_time(stream: Iterable[tuple[str, int, Any]]) -> Iterator[list[
         yield group
 
 
-def output_messages(result, image_msg: Any) -> list[tuple[str, Any]]:
+def output_messages(result, image_msg: Any, network_pose: bool = False) -> list[tuple[str, Any]]:
     """The ``/vlocnet/*`` messages of a :class:`~vlocnetpp_core.localizer.LocalizerResult` with the stamp and frame of
-    ``image_msg`` (no segmentation when ``result.mask`` is None: a pose-only model)."""
+    ``image_msg`` (no segmentation when ``result.mask`` is None: a pose-only model; the network's own pose on
+    ``/vlocnet/network_pose`` with ``network_pose``: a localizer refining against a map)."""
     ns, camera = messages.stamp_ns(image_msg), image_msg.header.frame_id
     out = [
         (POSE_TOPIC, messages.pose_stamped(ns, MAP_FRAME, result.t, result.q)),
@@ -142,6 +157,8 @@ def output_messages(result, image_msg: Any) -> list[tuple[str, Any]]:
     ]
     if result.mask is not None:
         out.append((SEGMENTATION_TOPIC, messages.image(ns, camera, result.mask, "mono8")))
+    if network_pose:
+        out.append((NETWORK_POSE_TOPIC, messages.pose_stamped(ns, MAP_FRAME, result.network_t, result.network_q)))
     return out
 
 
@@ -149,7 +166,7 @@ def copy_topics(reader: BagReader, writer: BagWriter, outputs: dict[str, str] | 
     """Declare every input topic (except old ``/vlocnet/*`` outputs, which the replay replaces) and the
     ``outputs`` (:func:`output_types`; default all of :data:`OUTPUT_TYPES`) on ``writer``."""
     for conn in reader.connections:
-        if conn.topic not in OUTPUT_TYPES and not writer.has_topic(conn.topic):
+        if conn.topic not in ALL_OUTPUT_TYPES and not writer.has_topic(conn.topic):
             writer.add_topic(conn.topic, conn.msgtype, conn.msgdef.data, conn.digest)
     for topic, msgtype in (OUTPUT_TYPES if outputs is None else outputs).items():
         writer.add_topic(topic, msgtype)
@@ -174,11 +191,12 @@ def replay(bag: str | Path, out: str | Path, localizer, image_topic: str | None 
         depth_by_stamp: dict[int, Any] = {}
         bar = tqdm(total=reader.count(topic), unit="frame", desc="replay", disable=not progress, file=sys.stderr)
         with sigterm_as_interrupt(), BagWriter(out, force=force) as writer, bar:
-            copy_topics(reader, writer, output_types(localizer.has_segmentation))
+            network_pose = localizer.refinement is not None
+            copy_topics(reader, writer, output_types(localizer.has_segmentation, network_pose))
             for group in groups_by_log_time(reader.messages(raw=True)):
                 images = []
                 for t, ns, raw in group:
-                    if t in OUTPUT_TYPES:
+                    if t in ALL_OUTPUT_TYPES:
                         continue
                     writer.write_raw(t, ns, raw)
                     if t not in decoded:
@@ -204,7 +222,9 @@ def replay(bag: str | Path, out: str | Path, localizer, image_topic: str | None 
                         continue
                     if result.reset_reason is not None:
                         summary.resets[result.reset_reason] += 1
-                    for out_topic, out_msg in output_messages(result, msg):
+                    if network_pose:
+                        summary.sources[result.source] += 1
+                    for out_topic, out_msg in output_messages(result, msg, network_pose):
                         writer.write(out_topic, ns, out_msg)
                     summary.processed += 1
                     bar.update(1)
@@ -223,6 +243,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="--through-node: publish at the bag's rate (default), at HZ frames/s, or 'max': the next image when the previous pose came back")
     p.add_argument("--max-gap-s", type=float, default=DEFAULT_MAX_GAP_S, help=f"reset the temporal state after a stamp gap longer than this (default {DEFAULT_MAX_GAP_S:g} s)")
     p.add_argument("--use-depth", action="store_true", help=f"give {DEPTH_TOPIC} to the localizer for warping instead of the predicted depth")
+    p.add_argument("--map", default=None, metavar="MAP.npz|auto",
+                   help="refine the pose against this keyframe map (vlocnetpp map build), as the node's parameter map; 'auto': "
+                        f"NAME.map.npz beside the checkpoint (none, with a warning, when missing); adds {NETWORK_POSE_TOPIC} "
+                        "(the network's own pose). Default: no refinement")
+    p.add_argument("--refine-every", type=int, default=1, metavar="K",
+                   help="with --map: refine every K-th frame, the odometry moves the refined pose on in between (default 1: every frame)")
     p.add_argument("--device", default="cpu", help="torch device (default cpu)")
     p.add_argument("--force", action="store_true", help="replace OUT.mcap if it exists")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -231,8 +257,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def bridge_argv(args: argparse.Namespace) -> list[str]:
     """The ``replay`` flags again, for the ``replay-node`` program (which takes the same ones)."""
     argv = [str(args.bag), "--checkpoint", str(args.checkpoint), "--out", str(args.out), "--through-node",
-            "--max-gap-s", repr(args.max_gap_s), "--device", args.device]
-    for flag, value in (("--image-topic", args.image_topic), ("--rate", args.rate)):
+            "--max-gap-s", repr(args.max_gap_s), "--device", args.device, "--refine-every", str(args.refine_every)]
+    for flag, value in (("--image-topic", args.image_topic), ("--rate", args.rate), ("--map", args.map)):
         if value is not None:
             argv += [flag, value]
     argv += [flag for flag, on in (("--use-depth", args.use_depth), ("--force", args.force), ("--no-progress", args.no_progress)) if on]
@@ -254,6 +280,16 @@ def parse_rate(text: str | None) -> float | None:
     return hz
 
 
+def map_argument(args: argparse.Namespace) -> Path | None:
+    """The keyframe map of ``--map`` (:func:`vlocnetpp_core.checkpoint.resolve_map_path`: ``auto`` without a map beside
+    the checkpoint warns on stderr and gives None), ``--refine-every`` checked."""
+    from vlocnetpp_core.checkpoint import resolve_map_path
+
+    if args.refine_every < 1:
+        raise UserError(f"--refine-every must be >= 1, got {args.refine_every}")
+    return resolve_map_path(args.checkpoint, args.map, "--map", lambda line: print(f"note: {line}", file=sys.stderr))
+
+
 def run(args: argparse.Namespace) -> int:
     if not (math.isfinite(args.max_gap_s) and args.max_gap_s > 0):
         raise UserError(f"--max-gap-s must be a positive number of seconds, got {args.max_gap_s}")
@@ -264,13 +300,16 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--out {args.out} is the input bag")
     if Path(args.out).exists() and not args.force:
         raise UserError(f"{args.out}: exists already (use --force to replace it)")
+    map_path = map_argument(args)
+    args.map = None if map_path is None else str(map_path.resolve())  # resolved once: the node gets a path
     if args.through_node:
         # The DDS side is a ROS program of its own (vlocnetpp_core never imports ROS): same flags.
         return subprocess.call([*program_command("replay-node"), *bridge_argv(args)])
     else:
         from vlocnetpp_core.localizer import Localizer
 
-        localizer = Localizer.from_checkpoint(args.checkpoint, device=args.device, max_gap_s=args.max_gap_s)
+        localizer = Localizer.from_checkpoint(args.checkpoint, device=args.device, max_gap_s=args.max_gap_s, map_path=map_path,
+                                              refine_every=args.refine_every)
         summary = replay(args.bag, args.out, localizer, args.image_topic, args.use_depth, args.force, progress=not args.no_progress)
     print(summary.format())
     return 0

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import os
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -103,7 +104,7 @@ class KeyframeMap:
                 arrays = {name: f[name] for name in _ARRAYS}
         except FileNotFoundError:
             raise DataError(path, "no such map file (build one with 'vlocnetpp map build')") from None
-        except (OSError, ValueError, KeyError) as err:
+        except (OSError, ValueError, KeyError, zipfile.BadZipFile) as err:
             raise DataError(path, f"not a keyframe map written by 'vlocnetpp map build' ({err})") from None
         if meta.get("format_version") != FORMAT_VERSION:
             raise DataError(path, f"map format version {meta.get('format_version')!r}, this version reads {FORMAT_VERSION}")
