@@ -113,7 +113,7 @@ def test_evaluate_threshold_and_length_flags(evaluated, tmp_path):
                        "--json", str(tmp_path / "m.json")]
     assert cli.main(argv) == 0
     report = json.loads((tmp_path / "m.json").read_text())
-    assert list(report["overall"]["pose"])[2:] == ["accuracy_5cm_5deg", "accuracy_2m_90deg"]
+    assert list(report["overall"]["pose"])[2:] == ["accuracy_5cm_5deg", "accuracy_0.5m_5deg", "accuracy_2m_90deg"]
     assert report["overall"]["odometry"]["lengths_m"] == [0.5, 1.0]
     assert not (tmp_path / "traj").exists()
 

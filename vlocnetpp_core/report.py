@@ -35,8 +35,8 @@ def add_report_arguments(p: argparse.ArgumentParser, reference_help: str) -> Non
     p.add_argument("--json", default=None, metavar="OUT", help="write the metrics as JSON to OUT")
     p.add_argument("--trajectories", default=None, metavar="DIR", help="write TUM trajectories per sequence (global_pose.tum, odometry.tum, ground_truth.tum)")
     p.add_argument("--plots", default=None, metavar="DIR", help="write PNG plots (trajectories, errors, confusion matrix, segmentation strip)")
-    p.add_argument("--threshold-m", type=float, default=0.5, help="translation threshold of the second pose accuracy (default 0.5 m; 5 cm / 5 deg is always reported)")
-    p.add_argument("--threshold-deg", type=float, default=5.0, help="rotation threshold of the second pose accuracy (default 5 deg)")
+    p.add_argument("--threshold-m", type=float, default=0.5, help="translation threshold of a further pose accuracy (default 0.5 m; 5 cm / 5 deg and 0.5 m / 5 deg are always reported)")
+    p.add_argument("--threshold-deg", type=float, default=5.0, help="rotation threshold of that further pose accuracy (default 5 deg)")
     p.add_argument("--odometry-lengths", default=None, metavar="L1,L2,...",
                    help="KITTI-style segment lengths in metres (default: 10%%..80%% of the shortest sequence's path)")
     p.add_argument("--samples", type=int, default=3, metavar="K", help="frames per sequence in the segmentation strip plot (default 3)")
@@ -50,10 +50,10 @@ def positive_flag(value: float, flag: str) -> float:
 
 
 def thresholds_from_args(args: argparse.Namespace) -> list[tuple[float, float]]:
-    """5 cm / 5 deg and ``--threshold-m/--threshold-deg`` (once when they are the same)."""
+    """5 cm / 5 deg, 0.5 m / 5 deg and ``--threshold-m/--threshold-deg`` (each once)."""
     threshold = (positive_flag(args.threshold_m, "--threshold-m"), positive_flag(args.threshold_deg, "--threshold-deg"))
-    first = DEFAULT_THRESHOLDS[0]
-    return [first] + ([threshold] if accuracy_key(*threshold) != accuracy_key(*first) else [])
+    keys = {accuracy_key(*t) for t in DEFAULT_THRESHOLDS}
+    return list(DEFAULT_THRESHOLDS) + ([threshold] if accuracy_key(*threshold) not in keys else [])
 
 
 def parse_lengths(text: str | None) -> list[float] | None:

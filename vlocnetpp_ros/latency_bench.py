@@ -92,8 +92,10 @@ def large_data_profile() -> Path:
 
 
 def measure(checkpoint: str, frames: np.ndarray, repetitions: int, warmup: int, device: str = "cpu", backend: str = "torch",
-            num_threads: int = 0, transport: str = "large_data", startup_timeout_s: float = 120.0, answer_timeout_s: float = 30.0) -> dict:
+            num_threads: int = 0, transport: str = "large_data", startup_timeout_s: float = 120.0, answer_timeout_s: float = 30.0,
+            map_path: str | None = None, refine_every: int = 1) -> dict:
     """Run the node and the bare Localizer interleaved over ``frames (N, H, W, 3) uint8 RGB`` (cycled); see module doc.
+    ``map_path``: both refine against this keyframe map every ``refine_every``-th frame.
 
     ``transport="large_data"`` sets ``FASTRTPS_DEFAULT_PROFILES_FILE`` in this process (before its DDS
     participant exists) and so in the node's environment."""
@@ -103,7 +105,7 @@ def measure(checkpoint: str, frames: np.ndarray, repetitions: int, warmup: int, 
         raise UserError(f"transport must be large_data or environment, got {transport!r}")
     namespace = f"/vlocnetpp_latency_{os.getpid()}"
     start = time.perf_counter()
-    argv = localizer_command() + node_arguments(namespace, checkpoint, False, False, 1.0, device)
+    argv = localizer_command() + node_arguments(namespace, checkpoint, False, False, 1.0, device, map_path, refine_every)
     num_threads = use_threads(num_threads)  # the node resolves 0 the same way: both sides run alike
     argv += ["-p", f"backend:={backend}", "-p", f"num_threads:={num_threads}"]
     probe = _Probe(namespace)
@@ -113,7 +115,8 @@ def measure(checkpoint: str, frames: np.ndarray, repetitions: int, warmup: int, 
             node.check_alive()
             if time.perf_counter() - start > startup_timeout_s:
                 raise UserError(f"the localizer node did not connect within {startup_timeout_s:.0f} s:\n{node.tail()}")
-        localizer = Localizer.from_checkpoint(checkpoint, device=device, num_threads=num_threads, backend=backend)
+        localizer = Localizer.from_checkpoint(checkpoint, device=device, num_threads=num_threads, backend=backend, map_path=map_path,
+                                              refine_every=refine_every)
         startup_s = time.perf_counter() - start
         latency, step = [], []
         for k in range(warmup + repetitions):
@@ -163,12 +166,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--transport", choices=("large_data", "environment"), default="large_data",
                         help="DDS settings of both sides: the shipped large-data Fast DDS profile (default) or the environment's")
     parser.add_argument("--num-threads", type=int, default=0, metavar="N", help="torch / ONNX Runtime threads of both sides (0: default)")
+    parser.add_argument("--map", default=None, metavar="MAP.npz", help="keyframe map both sides refine against (default: none)")
+    parser.add_argument("--refine-every", type=int, default=1, metavar="K", help="with --map: refine every K-th frame (default 1)")
     args = parser.parse_args(argv)
     try:
         frames = np.load(args.frames)
         if frames.ndim != 4 or frames.shape[-1] != 3 or frames.dtype != np.uint8:
             raise UserError(f"{args.frames}: expected (N, H, W, 3) uint8 frames, got {frames.shape} {frames.dtype}")
-        result = measure(args.checkpoint, frames, args.repetitions, args.warmup, args.device, args.backend, args.num_threads, args.transport)
+        result = measure(args.checkpoint, frames, args.repetitions, args.warmup, args.device, args.backend, args.num_threads, args.transport,
+                         map_path=args.map, refine_every=args.refine_every)
     except UserError as err:
         print(f"latency_bench: error: {err}", file=sys.stderr)
         return 2

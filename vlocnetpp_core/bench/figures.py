@@ -242,14 +242,15 @@ def train_step(config: str, device: str, repetitions: int, warmup: int, batch: i
 
 
 def node_latency(checkpoint: Path, frames: list[np.ndarray], workdir: Path, device: str, threads: int, backend: str, transport: str,
-                 repetitions: int, warmup: int, timeout_s: float = 300.0) -> dict:
+                 repetitions: int, warmup: int, timeout_s: float = 300.0, map_path: Path | None = None, refine_every: int = 1) -> dict:
     """Run the ``latency-bench`` ROS program (the real node over DDS vs the bare Localizer,
-    interleaved); medians of its per-frame seconds, and the node's memory."""
+    interleaved); medians of its per-frame seconds, and the node's memory. ``map_path``: both refine against it."""
     path = workdir / "camera_frames.npy"
     np.save(path, np.stack(frames))
     argv = [*program_command("latency-bench"), "--checkpoint", str(checkpoint), "--frames", str(path),
             "--repetitions", str(repetitions), "--warmup", str(warmup), "--device", device, "--backend", backend,
-            "--num-threads", str(threads), "--transport", transport]
+            "--num-threads", str(threads), "--transport", transport,
+            *(["--map", str(map_path), "--refine-every", str(refine_every)] if map_path is not None else [])]
     try:
         proc = subprocess.run(argv, capture_output=True, text=True, timeout=timeout_s, stdin=subprocess.DEVNULL)
     except subprocess.TimeoutExpired:
