@@ -20,11 +20,12 @@ from rosbags.highlevel import AnyReader
 
 from vlocnetpp_core.bag import convert as conv
 from vlocnetpp_core.bag import messages
-from vlocnetpp_core.bag.bagfile import BagReader, temp_dir_for
+from vlocnetpp_core.bag.bagfile import BagReader
 from vlocnetpp_core.cli import main
 from vlocnetpp_core.data import open_dataset
 from vlocnetpp_core.data.sample import SEQUENCE_GAP_S
 from vlocnetpp_core.intrinsics import Intrinsics
+from vlocnetpp_core.outputs import temp_dir_for
 from vlocnetpp_core.preprocess import FrameError
 
 REPO = Path(__file__).resolve().parents[1]

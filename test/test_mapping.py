@@ -180,7 +180,7 @@ def test_map_build_refuses_bad_input_naming_it_and_leaves_nothing(campus, tmp_pa
     flat = tmp_path / "flat"  # no depth and one frame a sequence: nothing to triangulate with
     write_deeploc_split(flat, "train", [0], *trajectory(1), depth=None, labels=False)
     cases = [
-        ([str(out / "taken.npz")], "exists; use --force"),
+        ([str(out / "taken.npz")], "use --force"),
         ([str(out / "map.txt")], "ends in .npz"),
         ([str(out / "folder.npz")], "is a folder"),
         ([str(out / "afile" / "map.npz")], "not a writable folder"),

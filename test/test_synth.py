@@ -106,7 +106,7 @@ def test_existing_output_is_refused_unless_forced(small, tmp_path):
     out = tmp_path / "exists"
     out.mkdir()
     (out / "keep.txt").write_text("mine")
-    with pytest.raises(UserError, match="already exists"):
+    with pytest.raises(UserError, match="exists already"):
         render_dataset(out, **SMALL)
     assert (out / "keep.txt").read_text() == "mine"
     render_dataset(out, force=True, **SMALL)

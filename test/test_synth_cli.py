@@ -34,7 +34,7 @@ def test_renders_and_prints_one_summary_line(tmp_path, capsys):
     assert len(lines) == 1 and lines[0].startswith(f"wrote {out}: 1 train + 1 test loops, 6 frames at 64x36")
     assert len(list(out.glob("DeepLoc/*/LeftImages/*.png"))) == 6
     assert cli.main(["synth", str(out), "--loops", "1", "--frames-per-loop", "3", "--size", "64x36", "--no-progress"]) == 2
-    assert "already exists (use --force" in capsys.readouterr().err
+    assert "exists already (use --force" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("args, words", [(["--size", "64by36"], "WIDTHxHEIGHT"), (["--size", "4x4"], "--size"), (["--frames-per-loop", "0"], "--frames-per-loop")])

@@ -52,6 +52,7 @@ import torch
 from torch import nn
 
 from vlocnetpp_core.errors import DataError, UserError, require
+from vlocnetpp_core.outputs import refuse_existing
 
 FORMAT = "vlocnetpp-onnx-step"
 VERSION = 1
@@ -196,8 +197,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
-    if out.exists() and not args.force:
-        raise UserError(f"{out}: exists already (use --force to replace it)")
+    refuse_existing(out, args.force)
     if out.suffix != ".onnx":
         raise UserError(f"--out {out}: expected a .onnx file name")
     path = export_checkpoint(args.checkpoint, out)

@@ -37,6 +37,7 @@ import torch
 from vlocnetpp_core.errors import UserError
 from vlocnetpp_core.losses import S_Q_INIT
 from vlocnetpp_core.model.stages import PARTS, STAGES
+from vlocnetpp_core.outputs import check_run_dir
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -117,6 +118,7 @@ def _parts(text: str) -> tuple[str, ...]:
 
 
 def run(args: argparse.Namespace) -> int:
+    check_run_dir(args.out)  # a file there or a folder that cannot be written: one line, before anything is read
     if args.recipe:
         from vlocnetpp_core.recipe_run import run_recipe
 

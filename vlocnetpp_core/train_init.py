@@ -29,7 +29,11 @@ def load_inits(model, criterion, paths: list[str], stage: str, log) -> list[dict
     for path in paths:
         tensors, meta = read_checkpoint_tensors(path)
         src_stage = meta.get("training", {}).get("stage")
-        picked.append((path, src_stage, init_tensors(init_rule(stage, src_stage, len(paths)), src_stage, tensors, own)))
+        keep = init_tensors(init_rule(stage, src_stage, len(paths)), src_stage, tensors, own)
+        if not keep:
+            raise UserError(f"--init {path}: none of its {len(tensors)} tensors matches a tensor of this {stage} network "
+                            f"(checkpoint stage {src_stage or 'unknown'}); a checkpoint of another network or task?")
+        picked.append((path, src_stage, keep))
     sources, loaded = [], {}
     for i, (path, src_stage, keep) in enumerate(picked):
         later = set().union(*(k for _, _, k in picked[i + 1:]))

@@ -27,6 +27,7 @@ from vlocnetpp_core.lr_schedule import LearningRatePhase
 from vlocnetpp_core.model.assembly import builds_semantic_fusion, frozen_trunk
 from vlocnetpp_core.model.stages import mirrors_clips, stage_tasks
 from vlocnetpp_core.model.vlocnet import StepOutput
+from vlocnetpp_core.outputs import make_dirs
 from vlocnetpp_core.threads import use_threads
 from vlocnetpp_core.train_data import EpochSampler, SeededClips, split_validation, training_clips
 from vlocnetpp_core.train_init import load_inits
@@ -48,6 +49,8 @@ class Trainer:
         if args.resume or args.restart:
             self._resume(fresh=args.restart)
         self.net = torch.nn.parallel.DistributedDataParallel(self.model, find_unused_parameters=True) if self.distributed else self.model
+        if self.is_main:  # once every input was read and checked: a refused run leaves no folder behind
+            make_dirs(self.out, f"--out {self.out}")
 
     def log(self, msg: str) -> None:
         if self.is_main:
@@ -56,11 +59,12 @@ class Trainer:
     # ------------------------------------------------------------------ set-up
 
     def _setup_process(self) -> None:
-        """Ranks, device, threads and the run folder."""
+        """Ranks, device and threads (the run folder is made at the end of ``__init__``)."""
         args = self.args
         self.world = int(os.environ.get("WORLD_SIZE", "1"))
         self.rank = int(os.environ.get("RANK", "0"))
         self.distributed = self.world > 1
+        self.is_main = self.rank == 0  # before the first log line
         self.device = torch.device(args.device)
         if self.distributed:
             if self.device.type == "cuda":
@@ -72,10 +76,7 @@ class Trainer:
             self.log("--bf16: this CPU has neither AVX-512 BF16 nor AMX, so bfloat16 autocast runs slower here than float32")
         if args.batch_size % self.world:
             raise UserError(f"--batch-size {args.batch_size} must be divisible by the number of processes ({self.world})")
-        self.is_main = self.rank == 0
         self.out = Path(args.out)
-        if self.is_main:
-            self.out.mkdir(parents=True, exist_ok=True)
         torch.manual_seed(args.seed)
 
     def _setup_data(self) -> None:

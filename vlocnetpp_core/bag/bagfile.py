@@ -15,7 +15,6 @@ under its clearly temporary name and the next writer of the same output deletes 
 from __future__ import annotations
 
 import os
-import re
 import shutil
 from collections.abc import Iterable, Iterator
 from contextlib import suppress
@@ -27,36 +26,9 @@ from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 
 from vlocnetpp_core.bag import messages
 from vlocnetpp_core.errors import DataError, UserError
+from vlocnetpp_core.outputs import refuse_existing, remove_stale_temps, temp_dir_for
 
 ROSBAG2_VERSION = 9
-
-
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
-
-
-def temp_dir_for(path: Path, pid: int | None = None) -> Path:
-    """The temporary folder a writer of ``path`` uses: ``.NAME.partial-PID`` next to it."""
-    return path.with_name(f".{path.name}.partial-{os.getpid() if pid is None else pid}")
-
-
-def remove_stale_temps(path: Path) -> list[Path]:
-    """Delete temporary folders of ``path`` left by writers that are no longer running; returns them."""
-    pattern = re.compile(rf"^\.{re.escape(path.name)}\.partial-(\d+)$")
-    removed = []
-    if path.parent.is_dir():
-        for p in path.parent.iterdir():
-            m = pattern.match(p.name)
-            if m and (int(m.group(1)) == os.getpid() or not _pid_alive(int(m.group(1)))):
-                shutil.rmtree(p, ignore_errors=True)
-                removed.append(p)
-    return removed
 
 
 _LATCHED_QOS = Qos(QosHistory.KEEP_LAST, 1, QosReliability.RELIABLE, QosDurability.TRANSIENT_LOCAL, QosTime(0, 0), QosTime(0, 0),
@@ -77,8 +49,7 @@ class BagWriter:
             raise UserError(f"{self.path}: the output bag must be a file ending in .mcap")
         if self.path.is_dir():
             raise UserError(f"{self.path}: is a folder; give a file name ending in .mcap")
-        if self.path.exists() and not force:
-            raise UserError(f"{self.path}: exists already (use --force to replace it)")
+        refuse_existing(self.path, force)
         self.tmp = temp_dir_for(self.path)
         self._writer: Writer | None = None
         self._connections: dict[str, Any] = {}

@@ -62,6 +62,7 @@ from vlocnetpp_core.bag.topics import (
 from vlocnetpp_core.data.sample import DatasetIndex, Frame, sequence_stamps
 from vlocnetpp_core.errors import DataError, UserError
 from vlocnetpp_core.interrupts import sigterm_as_interrupt
+from vlocnetpp_core.outputs import refuse_existing
 
 CAMERA_FRAME = "camera"
 DEFAULT_RATE_HZ = {"deeploc": 20.0, "7scenes": 30.0}
@@ -231,8 +232,7 @@ def run(args: argparse.Namespace) -> int:
             raise DataError(args.dataset, "no train or test split found")
     else:
         splits = [args.split]
-    if Path(args.out).exists() and not args.force:
-        raise UserError(f"{args.out}: exists already (use --force to replace it)")
+    refuse_existing(args.out, args.force)
     indexes = [open_dataset(args.dataset, fmt, split, args.intrinsics) for split in splits]
     for index in indexes:
         for note in index.notes:

@@ -10,64 +10,28 @@ Layout (what :mod:`vlocnetpp_core.data.deeploc` reads; no labels)::
     OUT/intrinsics.json                                          {"fx", "fy", "cx", "cy", "width", "height"}
     OUT/extract.json                                             where it came from: bag, topics, options, counts
 
-:func:`atomic_output_dir` gives a hidden temporary folder next to ``OUT``
-(``.OUT.partial-<pid>``, the naming of :mod:`vlocnetpp_core.bag.bagfile`, whose stale-folder cleanup
-it shares) that is renamed to ``OUT`` only when the block ends without an error; an error, Ctrl-C
-or SIGTERM (with :func:`~vlocnetpp_core.interrupts.sigterm_as_interrupt`) deletes it.
+:func:`~vlocnetpp_core.outputs.atomic_output_dir` (the one of ``synth`` too) gives a hidden temporary
+folder next to ``OUT`` (``.OUT.partial-<pid>``, the naming of :mod:`vlocnetpp_core.bag.bagfile`, whose
+stale-folder cleanup it shares) that is renamed to ``OUT`` only when the block ends without an error; an
+error, Ctrl-C or SIGTERM (with :func:`~vlocnetpp_core.interrupts.sigterm_as_interrupt`) deletes it.
 """
 
 from __future__ import annotations
 
 import json
-import os
-import shutil
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 
-from vlocnetpp_core.bag.bagfile import remove_stale_temps, temp_dir_for
 from vlocnetpp_core.bag.extract_plan import PlannedFrame
 from vlocnetpp_core.data.imageio import BackgroundWriter, write_image
 from vlocnetpp_core.data.pfm import write_pfm
-from vlocnetpp_core.errors import UserError
 from vlocnetpp_core.intrinsics import Intrinsics
+from vlocnetpp_core.outputs import atomic_output_dir, check_output_dir
 
+check_output = check_output_dir  # the name extract.py checks its output with before reading the bag
 
-def check_output(out: Path, force: bool) -> None:
-    """Refuse an existing ``out`` without ``force``, and anything but a folder even with it."""
-    if out.exists() and not force:
-        raise UserError(f"{out}: exists already (use --force to replace it)")
-    if out.exists() and not out.is_dir():
-        raise UserError(f"{out}: exists and is not a folder; not replacing it")
-
-
-@contextmanager
-def atomic_output_dir(out: str | Path, force: bool = False) -> Iterator[Path]:
-    """Yield an empty temporary folder that becomes ``out`` when the block succeeds (an old ``out`` is
-    replaced only then, with ``force``); on any exception it is deleted and ``out`` left as it was."""
-    out = Path(out)
-    check_output(out, force)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    remove_stale_temps(out)
-    tmp = temp_dir_for(out)
-    tmp.mkdir()
-    try:
-        yield tmp
-        if out.exists():
-            old = tmp.with_name(tmp.name + "-old")
-            os.replace(out, old)
-            try:
-                os.replace(tmp, out)
-            except BaseException:
-                os.replace(old, out)  # put the previous dataset back
-                raise
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.replace(tmp, out)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
+__all__ = ["DeepLocWriter", "atomic_output_dir", "check_output"]
 
 
 class DeepLocWriter:

@@ -62,6 +62,7 @@ from vlocnetpp_core.bag.topics import (
 )
 from vlocnetpp_core.errors import DataError, UserError
 from vlocnetpp_core.interrupts import sigterm_as_interrupt
+from vlocnetpp_core.outputs import refuse_existing
 from vlocnetpp_core.programs import program_command
 
 OUTPUT_TYPES = {POSE_TOPIC: messages.POSE_STAMPED, POSE_WITH_COVARIANCE_TOPIC: messages.POSE_WITH_COVARIANCE_STAMPED,
@@ -298,8 +299,7 @@ def run(args: argparse.Namespace) -> int:
         raise UserError("--rate only applies with --through-node (in process every frame is processed as fast as possible)")
     if Path(args.out).resolve() == Path(args.bag).resolve():
         raise UserError(f"--out {args.out} is the input bag")
-    if Path(args.out).exists() and not args.force:
-        raise UserError(f"{args.out}: exists already (use --force to replace it)")
+    refuse_existing(args.out, args.force)
     map_path = map_argument(args)
     args.map = None if map_path is None else str(map_path.resolve())  # resolved once: the node gets a path
     if args.through_node:

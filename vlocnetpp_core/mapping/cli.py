@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 
 from vlocnetpp_core.errors import UserError
+from vlocnetpp_core.outputs import refuse_existing
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -44,8 +45,7 @@ def _check_build_args(args: argparse.Namespace) -> Path:
         raise UserError(f"{out}: a map file name ends in .npz")
     if out.is_dir():
         raise UserError(f"{out}: is a folder; give a file name ending in .npz")
-    if out.exists() and not args.force:
-        raise UserError(f"{out} exists; use --force to replace it")
+    refuse_existing(out, args.force)
     parent = out.parent if str(out.parent) else Path(".")
     if parent.exists() and not (parent.is_dir() and os.access(parent, os.W_OK)):
         raise UserError(f"{parent}: cannot write the map there (not a writable folder)")

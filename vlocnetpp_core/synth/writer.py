@@ -10,18 +10,16 @@ Layout (the contract with ``vlocnetpp_core.data.deeploc``)::
     OUT/intrinsics.json  OUT/scene.json  OUT/preview/{mosaic,map}.png
 
 Loop ``k`` of a split has ids ``k * 10000 + 1, k * 10000 + 2, ...``. Everything is written to a
-temporary folder next to ``OUT`` and renamed into place at the end, so an interrupted or failed
-run leaves no ``OUT`` behind. The same ``(scene, seed, sizes)`` give the same bytes.
+temporary folder next to ``OUT`` and renamed into place at the end
+(:func:`~vlocnetpp_core.outputs.atomic_output_dir`), so an interrupted or failed run leaves no ``OUT``
+behind. The same ``(scene, seed, sizes)`` give the same bytes.
 """
 
 from __future__ import annotations
 
 import json
 import math
-import os
 import re
-import shutil
-import tempfile
 import time
 from pathlib import Path
 
@@ -32,6 +30,7 @@ from vlocnetpp_core.data.imageio import BackgroundWriter, write_image
 from vlocnetpp_core.data.pfm import write_pfm
 from vlocnetpp_core.errors import UserError
 from vlocnetpp_core.intrinsics import Intrinsics
+from vlocnetpp_core.outputs import atomic_output_dir
 from vlocnetpp_core.synth.campus import load_campus
 from vlocnetpp_core.synth.drive import MAX_LANE_OFFSET_M, plan_visit
 from vlocnetpp_core.synth.preview import mosaic, top_down_map
@@ -104,30 +103,9 @@ def render_dataset(
     if not (math.isfinite(lane_wander) and 0 <= lane_wander <= MAX_LANE_OFFSET_M):
         raise UserError(f"--lane-wander must be within 0 and {MAX_LANE_OFFSET_M:g} m, got {lane_wander}")
     out = Path(out)
-    if out.exists() and not force:
-        raise UserError(f"{out} already exists (use --force to replace it)")
-    if out.exists() and not out.is_dir():
-        raise UserError(f"{out} exists and is not a folder; not replacing it")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
-    try:
+    with atomic_output_dir(out, force) as tmp:
         summary = _render_into(tmp, scene, int(seed), train_loops, test_loops, frames_per_loop, (w, h), progress, frame_interval,
                                test_lane_offset, lane_wander)
-        if out.exists():
-            old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
-            os.replace(out, old / "data")
-            try:
-                os.replace(tmp, out)
-            except BaseException:
-                os.replace(old / "data", out)  # put the previous dataset back
-                old.rmdir()
-                raise
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.replace(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     summary["out"] = str(out)
     return summary
 
