@@ -112,7 +112,7 @@ def test_quick_run_says_what_it_measured(report):
 
 
 def test_resnet50_is_the_standard_one():
-    """25.6 M parameters and 9.34 GMAC at 448x256, as torchvision's resnet50 (the DESIGN's yardstick)."""
+    """25.6 M parameters and 9.34 GMAC at 448x256, as torchvision's resnet50 (the yardstick of docs/performance.md)."""
     with single_thread():
         model = ResNet50().eval()
         assert sum(p.numel() for p in model.parameters()) == 25_557_032

@@ -3,7 +3,7 @@
 Frames: ``map`` (world), ``odom`` (where the odometry started), ``camera`` (the optical frame the
 network localises: x right, y down, z forward) and ``base`` (the robot body). The extrinsics
 ``T_base,camera`` are the camera's pose in ``base``: translation ``t`` in metres and a unit
-quaternion ``q = (w, x, y, z)``, ``w >= 0`` (DESIGN section 3).
+quaternion ``q = (w, x, y, z)``, ``w >= 0`` (docs/conventions.md, Poses and frames).
 
 * Global pose: ``T_map,base = T_map,camera T_camera,base`` with ``T_camera,base = T_base,camera^{-1}``.
 * Odometry: the odometry of the camera starts at identity, so its ``odom`` frame is the camera's

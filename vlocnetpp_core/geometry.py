@@ -1,6 +1,6 @@
 """Rigid-body geometry shared by the network, the data readers, the metrics and the node.
 
-Conventions (DESIGN section 3), pinned here and by ``test/test_geometry.py``:
+Conventions (docs/conventions.md, Poses and frames; Relative pose), pinned here and by ``test/test_geometry.py``:
 
 * A pose is camera-to-world ``T_wc``: translation ``t`` in metres ``(..., 3)`` and a unit
   quaternion ``q = (w, x, y, z)`` ``(..., 4)`` with ``w >= 0``. ROS messages use
@@ -197,7 +197,7 @@ def pose_inverse(t: Array, q: Array) -> tuple[Array, Array]:
 
 @_numpy_compatible
 def relative_pose(t_prev: Array, q_prev: Array, t_cur: Array, q_cur: Array) -> tuple[Array, Array]:
-    """``T_rel = T_prev^{-1} T_cur``: camera t expressed in camera t-1 (SE(3) form, DESIGN section 3)."""
+    """``T_rel = T_prev^{-1} T_cur``: camera t expressed in camera t-1 (SE(3) form, docs/conventions.md, Relative pose)."""
     ti, qi = pose_inverse(t_prev, q_prev)
     return pose_compose(ti, qi, t_cur, q_cur)
 
@@ -258,7 +258,7 @@ def pixel_grid(height: int, width: int, dtype=torch.float32, device=None) -> tor
 
 
 def warp_grid(depth: torch.Tensor, T_rel: torch.Tensor, K: torch.Tensor, min_depth: float = 1e-3) -> tuple[torch.Tensor, torch.Tensor]:
-    """Backward-warp sampling grid from frame t into frame t-1 (paper Eq. 4, DESIGN section 3).
+    """Backward-warp sampling grid from frame t into frame t-1 (paper Eq. 4, docs/conventions.md, Warping).
 
     For every pixel ``u`` of frame t: back-project with ``D_t(u)``, move the point into camera
     t-1 with ``T_rel = T_{t-1}^{-1} T_t`` and project with ``K``.

@@ -5,7 +5,7 @@ Per clip of ``T`` frames (``outputs[t]`` are :class:`~vlocnetpp_core.model.StepO
 * ``loc`` (Eq. 3): ``L_Euc + L_Rel`` as ``(L_x + L_x_rel) e^{-s_x} + s_x + (L_q + L_q_rel) e^{-s_q} + s_q`` with
   ``L_x = ||x_t - x^_t||``, ``L_q = ||q_t - q^_t||`` (the nearer of ``q^`` and ``-q^``) over every frame; ``L_Rel`` (geometric
   consistency) compares the relative pose of the predicted global poses of frames t-1 and t,
-  ``T^_{t-1}^{-1} T^_t`` (SE(3) form, DESIGN section 3), with the ground-truth ``rel_t, rel_q``
+  ``T^_{t-1}^{-1} T^_t`` (SE(3) form, docs/conventions.md, Relative pose), with the ground-truth ``rel_t, rel_q``
   over frames ``1..T-1``. **Departure from the paper**, which gives ``L_Rel`` weights of its own
   (``s_x_rel``, ``s_q_rel``): a learned weight tends to ``1 / L``, so the consistency errors, small on
   a camera that moves 0.5 m and a degree per frame, got weights 20x those of the global errors and

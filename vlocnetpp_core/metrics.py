@@ -1,4 +1,4 @@
-"""The paper's metrics (DESIGN section 6) computed from arrays; numpy only, no torch.
+"""The paper's metrics (docs/conventions.md, Metrics) computed from arrays; numpy only, no torch.
 
 * Global pose: median translation (m) / rotation (deg) error, and the share of frames under
   ``x m`` and ``y deg`` for each threshold (``accuracy_5cm_5deg``, ``accuracy_0.5m_5deg``).

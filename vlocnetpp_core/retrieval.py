@@ -8,7 +8,7 @@ image of the place shares says nothing about where it was taken) and both sides 
 normalised again; similarity is the cosine. No learning, no ROS: a few milliseconds per image.
 
 A regressor that is not better than this, on the same frames, has learned less than a lookup
-table of its training images (DESIGN.md section 6).
+table of its training images (docs/conventions.md, Metrics: Retrieval baseline).
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Trajectories: TUM files, odometry accumulation and Umeyama alignment (numpy; rotations from ``geometry``).
 
-A :class:`Trajectory` is ``N`` stamped camera-to-world poses ``T_wc`` (DESIGN section 3):
+A :class:`Trajectory` is ``N`` stamped camera-to-world poses ``T_wc`` (docs/conventions.md, Poses and frames):
 ``stamps (N,)`` seconds, ``t (N, 3)`` metres, ``q (N, 4)`` unit quaternions ``(w, x, y, z)``
 with ``w >= 0``. TUM files hold one pose a line, ``t tx ty tz qx qy qz qw`` (ROS quaternion
 order), which is what ``evo`` reads (``evo_ape tum ref.tum est.tum``).

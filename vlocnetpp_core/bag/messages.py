@@ -1,7 +1,7 @@
 """ROS 2 Jazzy messages as ``rosbags`` objects: built from numpy, read back to numpy. No rclpy here.
 
 The types come from ``rosbags.typesys`` (``Stores.ROS2_JAZZY``), so the definitions written into
-a bag are the real Jazzy ones. Conventions (DESIGN section 3): stamps are float seconds in core
+a bag are the real Jazzy ones. Conventions (docs/conventions.md, Stamps; Poses and frames): stamps are float seconds in core
 and ``builtin_interfaces/Time`` (or integer nanoseconds, the bag's log time) here; quaternions
 are ``(w, x, y, z)`` in core and ``(x, y, z, w)`` in the messages, converted only in this module.
 The rclpy twin of these builders is the node package's ``conversions`` module (a different type system).

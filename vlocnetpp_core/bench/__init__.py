@@ -1,4 +1,4 @@
-"""``vlocnetpp bench``: speed and memory against the performance targets (DESIGN section 7), in one run.
+"""``vlocnetpp bench``: speed and memory against the performance targets (docs/performance.md), in one run.
 
 Figures (each with its target; ratios are measured interleaved, see :mod:`.timing`):
 
@@ -10,7 +10,7 @@ Figures (each with its target; ratios are measured interleaved, see :mod:`.timin
 ``converter_speed_over_png_decode`` >= 0.8   frames/s of ``vlocnetpp convert`` / frames/s of decoding the same PNGs alone
 ``synth_fps``                       >= 30    synthetic campus frames rendered per second at 320x180
 ``peak_rss_mb``                     (none)   peak resident memory of the node process while streaming (MiB)
-``paper_step_ms``                   <= 5     paper step in ms (fastest backend); target on CUDA only (DESIGN: H100 goal)
+``paper_step_ms``                   <= 5     paper step in ms (fastest backend); target on CUDA only (H100-class GPU goal, docs/performance.md)
 ``node_refined_hz``                 >= 15    shipped lite model + its keyframe map, refining every frame: frames/s through the node
 =================================== ======== =========================================================
 

@@ -1,4 +1,4 @@
-"""DeepLoc reader (DESIGN section 5), tolerant of what public copies of the dataset contain.
+"""DeepLoc reader (docs/conventions.md, Formats), tolerant of what public copies of the dataset contain.
 
 Layout (``DIR`` is the folder holding ``DeepLoc/``, or the ``DeepLoc`` folder itself)::
 
