@@ -88,12 +88,17 @@ class FeatureExtractor:
 
 
 def match(query: np.ndarray, train: np.ndarray, ratio: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Ratio-test matches of descriptors ``query (N, 128)`` against ``train (M, 128)`` (uint8):
-    ``(query_index (K,), train_index (K,), distance (K,))``."""
+    """Ratio-test matches of descriptors ``query (N, 128)`` against ``train (M, 128)`` (uint8): each query's nearest
+    train descriptor in L2 where it is closer than ``ratio`` times the second nearest;
+    ``(query_index (K,), train_index (K,), distance (K,))``. Brute force, as OpenCV's BFMatcher."""
     if len(query) == 0 or len(train) < 2:
         return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.float32)
-    matcher = cv2.BFMatcher(cv2.NORM_L2)
-    pairs = matcher.knnMatch(query.astype(np.float32), train.astype(np.float32), k=2)
-    good = [p[0] for p in pairs if len(p) == 2 and p[0].distance < ratio * p[1].distance]
-    return (np.array([m.queryIdx for m in good], np.int64), np.array([m.trainIdx for m in good], np.int64),
-            np.array([m.distance for m in good], np.float32))
+    q, t = query.astype(np.float32), train.astype(np.float32)
+    # (N, M) squared distances; OpenCV's product rather than numpy's, whose BLAS threads would spin beside the network
+    d2 = cv2.gemm(q, t, -2.0, None, 0.0, flags=cv2.GEMM_2_T) + np.einsum("ij,ij->i", q, q)[:, None] + np.einsum("ij,ij->i", t, t)[None, :]
+    rows = np.arange(len(q))
+    nearest = d2.argmin(axis=1)
+    best = np.maximum(d2[rows, nearest], 0.0)
+    d2[rows, nearest] = np.inf
+    good = best < ratio * ratio * d2.min(axis=1)
+    return rows[good].astype(np.int64), nearest[good].astype(np.int64), np.sqrt(best[good]).astype(np.float32)
