@@ -1,4 +1,4 @@
-"""Structure-based refinement: a map of the training images and PnP against it (no ROS, no torch).
+"""Structure-based refinement: a map of the training images and PnP against it (no ROS).
 
 * :mod:`.features`: SIFT keypoints and descriptors, ratio-test matching.
 * :mod:`.keyframe_map`: the map (keyframes with pose, intrinsics, features and their 3D points), its file.
