@@ -5,7 +5,7 @@
 2. convert them to a ROS 2 MCAP bag (``vlocnetpp convert``),
 3. replay the bag through the real ``localizer`` node over DDS with the shipped model
    (``vlocnetpp replay --through-node --rate max``: every frame is processed), refining its pose
-   against the keyframe map shipped beside the model (``models/vlocnetpp_lite.map.npz``, ``--map
+   against the keyframe map beside the model (``models/vlocnetpp_lite.map.npz``, built as docs/refinement.md says; ``--map
    auto``; without that file a note says so and the network's pose is published),
 4. score the output bag (``vlocnetpp evaluate-bag``) and print the results table, the plots
    and the output bag. Rows: the network's pose, the refined pose (with the map), the retrieval

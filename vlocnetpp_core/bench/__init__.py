@@ -59,6 +59,7 @@ class BenchSettings:
     threads: int = 0
     node: bool = True
     refinement: bool = True  # the refinement figures (shipped model and map, :mod:`.refinement`)
+    refinement_map: str = "auto"  # their keyframe map: a file, or auto (NAME.map.npz beside the shipped model)
     node_backend: str = "torch"
     node_transport: str = "large_data"  # or "environment" (see the latency-bench program, docs/performance.md)
     node_repetitions: int = 30
@@ -201,11 +202,12 @@ def _refinement(settings: BenchSettings, camera: list, work: Path, device: str, 
 
     times: dict = {}
     try:
-        times.update(refinement.refined_steps(camera, device, settings.threads, settings.repetitions * 3, settings.warmup))
+        times.update(refinement.refined_steps(camera, device, settings.threads, settings.repetitions * 3, settings.warmup,
+                                              settings.refinement_map))
         if settings.node:
             require("rclpy", "the node figure (ROS 2 Jazzy)")
             times.update(refinement.node_rates(camera, work, device, settings.threads, settings.node_backend, settings.node_transport,
-                                               settings.node_repetitions, settings.node_warmup))
+                                               settings.node_repetitions, settings.node_warmup, settings.refinement_map))
     except UserError as err:
         notes.append(f"refinement {'through the node ' if times else ''}not measured: {err}")
     return times

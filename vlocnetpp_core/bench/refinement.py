@@ -2,8 +2,9 @@
 and the node's rate with it.
 
 Unlike the other figures these need trained weights (the network's pose selects the keyframes; an untrained one
-selects none and refines nothing): the shipped model and its map ``NAME.map.npz`` beside it. Without them the
-figures are None and a note says why.
+selects none and refines nothing): the shipped model, and a keyframe map of the campus (setting ``refinement_map``:
+a map file, or ``auto`` for ``NAME.map.npz`` beside the shipped model, which ``vlocnetpp map build`` makes:
+docs/refinement.md). Without them the figures are None and a note says why.
 
 * :func:`refined_steps`: ``Localizer.step`` of the shipped model without a map, refining every frame and every second
   frame, interleaved over the same consecutive camera frames (each on its own stream): ``refine_step_{none,every1,
@@ -25,8 +26,9 @@ FRAME_INTERVAL_S = 0.05
 EVERY = (1, 2)
 
 
-def shipped_model_and_map() -> tuple[Path, Path]:
-    """The shipped checkpoint and its keyframe map; ``UserError`` saying which is missing."""
+def shipped_model_and_map(map_setting: str = "auto") -> tuple[Path, Path]:
+    """The shipped checkpoint and the keyframe map of ``map_setting`` (:func:`~vlocnetpp_core.checkpoint.resolve_map_path`);
+    ``UserError`` saying which is missing."""
     from vlocnetpp_core.checkpoint import resolve_map_path, shipped_checkpoint
 
     try:
@@ -34,18 +36,18 @@ def shipped_model_and_map() -> tuple[Path, Path]:
     except FileNotFoundError as err:
         raise UserError(str(err)) from None
     missing: list[str] = []
-    path = resolve_map_path(checkpoint, "auto", warn=missing.append)
+    path = resolve_map_path(checkpoint, map_setting, "refinement_map", warn=missing.append)
     if path is None:
         raise UserError(missing[0] if missing else f"no keyframe map beside {checkpoint}")
     return checkpoint, path
 
 
-def refined_steps(frames: list[np.ndarray], device: str, threads: int, repetitions: int, warmup: int) -> dict:
+def refined_steps(frames: list[np.ndarray], device: str, threads: int, repetitions: int, warmup: int, map_setting: str = "auto") -> dict:
     """Seconds per ``Localizer.step`` of the shipped model on consecutive ``frames`` (cycled) without refinement and
     refining every k-th frame (k in :data:`EVERY`), interleaved; and the share of frames each published refined."""
     from vlocnetpp_core.localizer import Localizer
 
-    checkpoint, map_path = shipped_model_and_map()
+    checkpoint, map_path = shipped_model_and_map(map_setting)
     localizers = {"none": Localizer.from_checkpoint(checkpoint, device=device, num_threads=threads)}
     for k in EVERY:
         localizers[f"every{k}"] = Localizer.from_checkpoint(checkpoint, device=device, num_threads=threads, map_path=map_path,
@@ -67,11 +69,11 @@ def refined_steps(frames: list[np.ndarray], device: str, threads: int, repetitio
 
 
 def node_rates(frames: list[np.ndarray], workdir: Path, device: str, threads: int, backend: str, transport: str,
-               repetitions: int, warmup: int) -> dict:
+               repetitions: int, warmup: int, map_setting: str = "auto") -> dict:
     """Lockstep seconds per frame through the node over DDS with the shipped model and map, refining every k-th frame."""
     from vlocnetpp_core.bench.figures import node_latency
 
-    checkpoint, map_path = shipped_model_and_map()
+    checkpoint, map_path = shipped_model_and_map(map_setting)
     out = {}
     for k in EVERY:
         node = node_latency(checkpoint, frames, workdir, device, threads, backend, transport, repetitions, warmup,
