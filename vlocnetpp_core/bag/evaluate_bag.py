@@ -43,9 +43,9 @@ import numpy as np
 
 from vlocnetpp_core.bag import messages
 from vlocnetpp_core.bag.bagfile import BagReader
+from vlocnetpp_core.bag.image_baselines import describe_frames
 from vlocnetpp_core.bag.pose_source import TfCollector
 from vlocnetpp_core.bag.topics import (
-    CAMERA_INFO_TOPIC,
     DEFAULT_MAX_GAP_S,
     GROUND_TRUTH_TOPIC,
     IMAGE_TOPICS,
@@ -212,53 +212,6 @@ def score_segmentation(reader: BagReader, where: dict[int, tuple[int, int]], sam
     return scores
 
 
-def describe_frames(reader: BagReader, where: dict[int, tuple[int, int]],
-                    refiner=None) -> tuple[list[np.ndarray], list[tuple[np.ndarray, np.ndarray]] | None]:
-    """Pass 3: per sequence, the retrieval descriptors ``(N_k, D)`` of the camera images of the frames in ``where``
-    (stamp -> (sequence, position)) and, with ``refiner`` (a :class:`~vlocnetpp_core.mapping.refiner.Refiner`), the
-    structure-based baseline's poses ``(t (N_k, 3), q (N_k, 4))`` of those images (``evaluate``'s ``_locate``; the
-    intrinsics of the latest ``/camera/camera_info``, that of the image's log time included), else None.
-    ``DataError`` when the bag has no camera image for one of them, or (with ``refiner``) no camera info before it."""
-    from types import SimpleNamespace
-
-    from vlocnetpp_core.bag.replay import groups_by_log_time
-    from vlocnetpp_core.evaluate import _locate
-    from vlocnetpp_core.retrieval import describe
-
-    image_topic = next((t for t in IMAGE_TOPICS if t in reader.topics), None)
-    if image_topic is None:
-        raise DataError(reader.path, f"no camera image topic ({' or '.join(IMAGE_TOPICS)}) to describe for the baselines")
-    lengths = np.bincount([k for k, _ in where.values()])
-    out: list[np.ndarray | None] = [None] * len(lengths)
-    seen = [np.zeros(n, bool) for n in lengths]
-    located = None if refiner is None else [(np.zeros((n, 3)), np.zeros((n, 4))) for n in lengths]
-    intrinsics = None
-    for group in groups_by_log_time(reader.messages([image_topic] + ([CAMERA_INFO_TOPIC] if refiner is not None else []))):
-        for topic, _, msg in group:
-            if topic == CAMERA_INFO_TOPIC:
-                intrinsics = messages.intrinsics_from_camera_info(msg)
-        for topic, _, msg in group:
-            ns = messages.stamp_ns(msg)
-            if topic != image_topic or ns not in where:
-                continue
-            k, position = where[ns]
-            rgb = messages.any_image_to_rgb(msg)
-            d = describe(rgb)
-            if out[k] is None:
-                out[k] = np.zeros((lengths[k], len(d)), np.float32)
-            out[k][position], seen[k][position] = d, True
-            if located is not None:
-                if intrinsics is None:
-                    raise DataError(reader.path, f"--map: no {CAMERA_INFO_TOPIC} up to the image at stamp {ns / 1e9:.9f} s "
-                                                 "(the structure-based baseline needs the camera's intrinsics)")
-                t, q, _ = _locate(refiner, SimpleNamespace(image=rgb, intrinsics=intrinsics), d)
-                located[k][0][position], located[k][1][position] = t, q
-    for k, ok in enumerate(seen):
-        if not ok.all():
-            raise DataError(reader.path, f"{image_topic} has no image for {int((~ok).sum())} scored frames of sequence {k}")
-    return out, located
-
-
 @dataclass
 class BagResults:
     """What :func:`collect_bag` read: per sequence the ``results`` (the network's pose as the prediction), the published
@@ -314,12 +267,9 @@ def add_refined_pose(report: dict, results: list[SequenceResult], poses: list[tu
     """Score the published poses of a refining localizer (``/vlocnet/pose`` beside ``/vlocnet/network_pose``) on the
     frames of ``results`` as ``pose_refined`` (overall and per sequence; the keys of ``pose``), and store
     ``overall.refined_share``: the share of frames whose published pose is not the network's (refined or propagated)."""
-    from vlocnetpp_core.mapping.evaluation import with_poses
+    from vlocnetpp_core.mapping.evaluation import add_pose_refined
 
-    scored = evaluate_sequences(with_poses(results, poses), thresholds, [1.0])
-    report["overall"]["pose_refined"] = scored["overall"]["pose"]
-    for name, part in scored["per_sequence"].items():
-        report["per_sequence"][name]["pose_refined"] = part["pose"]
+    add_pose_refined(report, results, poses, thresholds)
     changed = [np.any(t != r.pred_t, axis=1) | np.any(q != r.pred_q, axis=1) for r, (t, q) in zip(results, poses, strict=True)]
     report["overall"]["refined_share"] = float(np.mean(np.concatenate(changed)))
     return report

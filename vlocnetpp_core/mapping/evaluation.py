@@ -77,12 +77,19 @@ def calibration(errors: np.ndarray) -> dict:
             "within_1_sigma": float(np.mean(np.abs(errors) <= 1)), "within_2_sigma": float(np.mean(np.abs(errors) <= 2))}
 
 
-def add_refined(report: dict, results: Sequence, tracks: Sequence[RefinedTrack], thresholds=DEFAULT_THRESHOLDS) -> dict:
-    """Store the published poses' metrics as ``pose_refined`` (overall and per sequence) and ``overall.refinement``."""
-    scored = evaluate_sequences(with_poses(results, [(tr.t, tr.q) for tr in tracks]), thresholds, [1.0])
+def add_pose_refined(report: dict, results: Sequence, poses: Sequence[tuple[np.ndarray, np.ndarray]], thresholds=DEFAULT_THRESHOLDS) -> dict:
+    """Store the metrics of the published poses ``poses`` (per sequence ``(t (N_k, 3), q (N_k, 4))``) on the frames of
+    ``results`` as ``pose_refined``, overall and per sequence (the keys of ``pose``)."""
+    scored = evaluate_sequences(with_poses(results, poses), thresholds, [1.0])
     report["overall"]["pose_refined"] = scored["overall"]["pose"]
     for name, part in scored["per_sequence"].items():
         report["per_sequence"][name]["pose_refined"] = part["pose"]
+    return report
+
+
+def add_refined(report: dict, results: Sequence, tracks: Sequence[RefinedTrack], thresholds=DEFAULT_THRESHOLDS) -> dict:
+    """Store the published poses' metrics as ``pose_refined`` (overall and per sequence) and ``overall.refinement``."""
+    add_pose_refined(report, results, [(tr.t, tr.q) for tr in tracks], thresholds)
     sources = Counter(s for tr in tracks for s in tr.source)
     statuses = Counter(s for tr in tracks for s, src in zip(tr.status, tr.source, strict=True) if s is not None and src != "refined")
     n = sum(sources.values())
