@@ -14,10 +14,11 @@ from vlocnetpp_core import geometry
 from vlocnetpp_core.cli import main
 from vlocnetpp_core.data import open_dataset
 from vlocnetpp_core.errors import DataError
-from vlocnetpp_core.mapping.build import build_map, select_keyframes
+from vlocnetpp_core.mapping.build import build_map
 from vlocnetpp_core.mapping.keyframe_map import KeyframeMap
 from vlocnetpp_core.mapping.pnp import solve_pnp
 from vlocnetpp_core.mapping.refiner import Refiner
+from vlocnetpp_core.mapping.sources import keyframe_positions
 from vlocnetpp_core.mapping.stream import RefinedStream
 
 SPACING_M = 4.0
@@ -46,7 +47,7 @@ def _between_keyframes(campus: Path) -> list:
     for rng in index.sequences:
         t = np.array([index.records[i].t for i in rng])
         q = np.array([index.records[i].q for i in rng])
-        keyframes = set(select_keyframes(t, q, SPACING_M, 20.0))
+        keyframes = set(keyframe_positions(t, q, SPACING_M, 20.0))
         frames += [index.load(rng[p]) for p in range(1, len(rng), 2) if p not in keyframes]
     return frames
 
@@ -149,6 +150,23 @@ def test_a_dataset_without_depth_is_triangulated_onto_the_surface(tmp_path):
     # keypoint error moves a point by ~0.3 m along the ray): measured |Z - PLANE_Z| median 0.06 m, 90th percentile 0.12 m
     off = np.abs(m.points[:, 2] - PLANE_Z)
     assert np.median(off) < 0.15 and np.percentile(off, 90) < 0.4, (np.median(off), np.percentile(off, 90))
+
+
+def test_a_scene_map_renders_only_the_keyframes_and_equals_the_map_of_the_rendered_dataset(campus_map, tmp_path, capsys):
+    """``--scene`` renders the keyframes of the visits ``synth`` rendered for the ``campus`` fixture (same scene, seed,
+    loops, frames): the same pixels, depth and poses, so the same map, also from two worker processes."""
+    out = tmp_path / "scene.map.npz"
+    args = ["--scene", "campus", "--seed", "0", "--loops", "2", "--frames-per-loop", "120", "--spacing", str(SPACING_M), "--angle", "20"]
+    assert main(["map", "build", str(out), *args, "--workers", "2", "--no-progress"]) == 0
+    assert "scene campus seed 0, 2 train visits" in KeyframeMap.load(out).source
+    built, dataset = KeyframeMap.load(out), KeyframeMap.load(campus_map)
+    for name in ("t", "q", "intrinsics", "image_sizes", "offsets", "uv", "points", "descriptors", "thumbnails"):
+        np.testing.assert_array_equal(getattr(built, name), getattr(dataset, name), err_msg=name)
+    for bad, says in ((["--loops", "0"], "--loops must be >= 1"), (["--workers", "-1"], "--workers must be >= 0"),
+                      (["--lane-wander", "9"], "--lane-wander must be within")):
+        assert main(["map", "build", str(tmp_path / "bad.npz"), *args, *bad, "--no-progress"]) == 2, bad
+        assert says in capsys.readouterr().err
+    assert not (tmp_path / "bad.npz").exists()
 
 
 def test_map_file_round_trip_and_bad_files(campus_map, tmp_path):

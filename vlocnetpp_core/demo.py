@@ -5,8 +5,9 @@
 2. convert them to a ROS 2 MCAP bag (``vlocnetpp convert``),
 3. replay the bag through the real ``localizer`` node over DDS with the shipped model
    (``vlocnetpp replay --through-node --rate max``: every frame is processed), refining its pose
-   against the keyframe map beside the model (``models/vlocnetpp_lite.map.npz``, built as docs/refinement.md says; ``--map
-   auto``; without that file a note says so and the network's pose is published),
+   against the keyframe map beside the model (``models/vlocnetpp_lite.map.npz``, ``--map auto``). On the first run
+   the demo builds that map (step 0: the keyframes of the model's training visits, rendered, :data:`SHIPPED_MAP`;
+   about half a minute on 2 cores), beside the model where that folder is writable, else in the output folder;
 4. score the output bag (``vlocnetpp evaluate-bag``) and print the results table, the plots
    and the output bag. Rows: the network's pose, the refined pose (with the map), the retrieval
    baseline (pose of the nearest training image, from the descriptors shipped beside the model:
@@ -19,16 +20,21 @@ Nothing is cached: every number comes from this run.
 from __future__ import annotations
 
 import argparse
+import os
 import shutil
 import subprocess
 import time
 from pathlib import Path
 
 from vlocnetpp_core.bag import topics
+from vlocnetpp_core.checkpoint import MAP_AUTO
 from vlocnetpp_core.errors import UserError
+from vlocnetpp_core.mapping.build import ANGLE_DEG, SPACING_M
 from vlocnetpp_core.programs import program_command
 
 TRAINING_SEED = 0  # the visits the shipped model was trained on (config/recipes/shipped.yaml)
+# the shipped model's keyframe map: the train visits of the recipe's `campus` dataset, at the map's default spacing
+SHIPPED_MAP = {"scene": "campus", "seed": TRAINING_SEED, "loops": 32, "frames_per_loop": 250}
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -68,15 +74,21 @@ def run(args: argparse.Namespace) -> int:
     except FileNotFoundError as err:
         raise UserError(str(err)) from None
     notes: list[str] = []
-    map_path = resolve_map_path(checkpoint, args.map, "--map", notes.append)
+    build_shipped_map = args.checkpoint is None and args.map == MAP_AUTO
+    map_path = resolve_map_path(checkpoint, args.map, "--map", None if build_shipped_map else notes.append)
     out = Path(args.out)
     if out.exists():
         shutil.rmtree(out)
     out.mkdir(parents=True)
     start = time.perf_counter()
+    to_build = map_path is None and build_shipped_map
+    if to_build:
+        map_path = _shipped_map_path(checkpoint, out)
     print(f"VLocNet++ demo: model {checkpoint}, map {map_path or 'none (the network pose only)'}, output {out}/")
     for line in notes:
         print(f"note: {line}")
+    if to_build:
+        _build_shipped_map(map_path)
 
     t0 = _step(1, f"rendering {args.loops} fresh test loops of the synthetic campus (scene 'campus', visit seed {args.seed})")
     data = out / "campus"
@@ -125,6 +137,27 @@ def run(args: argparse.Namespace) -> int:
     print(f"output bag: {result_bag} (input topics + {', '.join(outputs)})")
     print(f"demo finished in {time.perf_counter() - start:.0f} s")
     return 0
+
+
+def _shipped_map_path(checkpoint: Path, out: Path) -> Path:
+    """Where the first run builds the shipped model's map: beside ``checkpoint`` (where ``map: auto`` finds it), or in
+    ``out`` where that folder is not writable."""
+    path = checkpoint.with_name(checkpoint.name.removesuffix(".safetensors") + ".map.npz")
+    return path if os.access(path.parent, os.W_OK) else out / path.name
+
+
+def _build_shipped_map(path: Path) -> None:
+    """Step 0 of the first run: build the shipped model's map (:data:`SHIPPED_MAP`) into ``path``."""
+    from vlocnetpp_core.mapping.build import build_map_of
+    from vlocnetpp_core.mapping.sources import scene_keyframes, scene_source
+
+    spec = SHIPPED_MAP
+    t0 = _step(0, f"building the shipped model's keyframe map (first run only): the keyframes of its {spec['loops']} training "
+                  f"visits (scene '{spec['scene']}', seed {spec['seed']}), rendered, into {path}")
+    sequences = scene_keyframes(spec["scene"], spec["seed"], spec["loops"], spec["frames_per_loop"], SPACING_M, ANGLE_DEG)
+    source = scene_source(spec["scene"], spec["seed"], spec["loops"], spec["frames_per_loop"])
+    build_map_of(sequences, source, workers=os.cpu_count() or 1).save(path)
+    _done(t0)
 
 
 def _replay_through_node(bag: Path, checkpoint: Path, map_path: Path | None, out: Path) -> str:

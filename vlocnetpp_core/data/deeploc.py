@@ -129,6 +129,12 @@ def read_poses(path: str | Path, quaternion_order: str = "wxyz") -> list[tuple[i
     return out
 
 
+# a new sequence starts after a gap of more frame numbers than this, or at a larger jump of the pose between frames
+MAX_ID_GAP = 10
+MAX_JUMP_M = 5.0
+MAX_JUMP_DEG = 45.0
+
+
 def split_sequences(ids: np.ndarray, t: np.ndarray, q: np.ndarray, max_id_gap: int, max_jump_m: float, max_jump_deg: float) -> list[range]:
     """Contiguous ranges of id-sorted frames; a new one starts at an id gap or an implausible pose jump."""
     if len(ids) == 0:
@@ -155,9 +161,9 @@ def read_deeploc(
     split: str = "train",
     intrinsics: Intrinsics | str | None = None,
     quaternion_order: str = "wxyz",
-    max_id_gap: int = 10,
-    max_jump_m: float = 5.0,
-    max_jump_deg: float = 45.0,
+    max_id_gap: int = MAX_ID_GAP,
+    max_jump_m: float = MAX_JUMP_M,
+    max_jump_deg: float = MAX_JUMP_DEG,
 ) -> DatasetIndex:
     """Index the ``split`` (``train`` / ``test``) of the DeepLoc dataset at ``path`` (see module doc)."""
     deeploc_dir, root = find_deeploc_root(path)

@@ -1,7 +1,8 @@
-"""A :class:`~.keyframe_map.KeyframeMap` from datasets with known poses (the training images of a model).
+"""A :class:`~.keyframe_map.KeyframeMap` from frames with known poses (the training images of a model).
 
-Keyframes: in each sequence the first frame, then every frame at least ``spacing_m`` from the last keyframe or
-turned by at least ``angle_deg`` from it. Each keyframe's SIFT keypoints (:mod:`.features`) become map points:
+Keyframes (:mod:`.sources`: of datasets, or rendered from a synthetic scene): in each sequence the first frame,
+then every frame at least ``spacing_m`` from the last keyframe or turned by at least ``angle_deg`` from it. Each
+keyframe's SIFT keypoints (:mod:`.features`) become map points:
 
 * with the dataset's depth: back-projected through the keyframe's intrinsics (depth along z, metres; keypoints
   whose depth is 0, beyond ``max_depth_m`` or whose 3x3 neighbourhood spans over 10 % of it, a depth edge, are dropped)
@@ -24,22 +25,14 @@ from vlocnetpp_core import geometry
 from vlocnetpp_core.errors import UserError
 from vlocnetpp_core.mapping.features import FeatureConfig, FeatureExtractor, Features, match, off_dynamic, to_grey
 from vlocnetpp_core.mapping.keyframe_map import KeyframeMap
+from vlocnetpp_core.mapping.sources import dataset_keyframes
 
+SPACING_M = 7.0  # keyframe spacing and turn of the shipped map (docs/refinement.md, "The map")
+ANGLE_DEG = 25.0
 MAX_DEPTH_M = 100.0
 EDGE_FRACTION = 0.1  # a keypoint whose 3x3 depth neighbourhood spans more than this fraction of its depth sits on a depth edge
 MIN_TRIANGULATION_DEG = 1.0
 MAX_TRIANGULATION_PX = 2.0
-
-
-def select_keyframes(t: np.ndarray, q: np.ndarray, spacing_m: float, angle_deg: float) -> list[int]:
-    """Positions of the keyframes among the poses ``t (N, 3)``, ``q (N, 4)`` of one sequence."""
-    keep = [0]
-    for i in range(1, len(t)):
-        moved = np.linalg.norm(t[i] - t[keep[-1]]) >= spacing_m
-        turned = float(geometry.rotation_error_deg(q[i], q[keep[-1]])) >= angle_deg
-        if moved or turned:
-            keep.append(i)
-    return keep
 
 
 def lift_with_depth(uv: np.ndarray, depth: np.ndarray, K: np.ndarray, t: np.ndarray, q: np.ndarray,
@@ -85,36 +78,66 @@ def _world_to_camera(t: np.ndarray, q: np.ndarray) -> np.ndarray:
     return np.c_[R.T, -R.T @ t]
 
 
-def build_map(indexes: Sequence, spacing_m: float = 5.0, angle_deg: float = 20.0, features: FeatureConfig = FeatureConfig(),
-              progress: bool = True) -> KeyframeMap:
+def build_map(indexes: Sequence, spacing_m: float = SPACING_M, angle_deg: float = ANGLE_DEG, features: FeatureConfig = FeatureConfig(),
+              progress: bool = True, workers: int = 1) -> KeyframeMap:
     """The map of the frames of ``indexes`` (``DatasetIndex``es with poses); ``UserError`` naming the dataset when one
     has no frames, or when the map would have no points."""
+    sequences = dataset_keyframes(indexes, spacing_m, angle_deg)
+    return build_map_of(sequences, "; ".join(f"{ix.root} ({ix.split})" for ix in indexes), features, progress, workers)
+
+
+def build_map_of(sequences: Sequence, source: str, features: FeatureConfig = FeatureConfig(), progress: bool = True,
+                 workers: int = 1) -> KeyframeMap:
+    """The map of keyframe ``sequences`` (:mod:`.sources`), described as ``source``; ``workers`` processes (1: this
+    one) each take whole sequences, and the map is the same for any number. ``UserError`` when it has no points."""
     from tqdm import tqdm
 
-    from vlocnetpp_core.retrieval import describe
-
-    chosen = []  # (index, frame numbers of one sequence's keyframes)
-    for index in indexes:
-        if len(index) == 0:
-            raise UserError(f"{index.root}: split {index.split!r} has no frames to build a map from")
-        for rng in (r for r in index.sequences if len(r)):
-            t = np.array([index.records[i].t for i in rng], np.float64)
-            q = geometry.quat_normalize(np.array([index.records[i].q for i in rng], np.float64))
-            chosen.append((index, [rng[p] for p in select_keyframes(t, q, spacing_m, angle_deg)]))
-    extractor = FeatureExtractor(features)
-    parts: dict[str, list] = {k: [] for k in ("t", "q", "intrinsics", "image_sizes", "uv", "points", "descriptors", "thumbnails", "counts")}
-    bar = tqdm(total=sum(len(ids) for _, ids in chosen), desc="map keyframes", unit="keyframe", disable=not progress, dynamic_ncols=True)
+    bar = tqdm(total=sum(len(s) for s in sequences), desc="map keyframes", unit="keyframe", disable=not progress, dynamic_ncols=True)
     with bar:
-        for index, ids in chosen:
-            frames = [index.load(i, depth=index.has_depth, labels=index.has_labels) for i in ids]
-            found = [_static_features(extractor, f) for f in frames]
-            for j, (frame, feats) in enumerate(zip(frames, found, strict=True)):
-                keep, points = _points_of(frames, found, j, features.ratio)
-                _append(parts, frame, feats, keep, points, describe(frame.image))
-                bar.update(1)
+        if workers <= 1 or len(sequences) < 2:
+            done = []
+            for seq in sequences:
+                done.append(_sequence_parts(seq, features))
+                bar.update(len(seq))
+        else:
+            done = _in_processes(sequences, features, min(workers, len(sequences)), bar)
+    parts: dict[str, list] = {k: [] for k in PARTS}
+    for part in done:
+        for k in PARTS:
+            parts[k].extend(part[k])
     if sum(parts["counts"]) == 0:
         raise UserError("no map points: the keyframes have no SIFT features with depth (or none could be triangulated)")
-    return _assemble(parts, features, "; ".join(f"{ix.root} ({ix.split})" for ix in indexes))
+    return _assemble(parts, features, source)
+
+
+def _in_processes(sequences: Sequence, features: FeatureConfig, workers: int, bar) -> list[dict]:
+    """:func:`_sequence_parts` of each sequence in ``workers`` fresh processes (spawned: no threads of this one are
+    inherited), in the order of ``sequences``."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    with ProcessPoolExecutor(workers, multiprocessing.get_context("spawn"), initializer=cv2.setNumThreads, initargs=(1,)) as pool:
+        futures = [pool.submit(_sequence_parts, seq, features) for seq in sequences]
+        for future, seq in zip(futures, sequences, strict=True):
+            future.add_done_callback(lambda _f, n=len(seq): bar.update(n))
+        return [f.result() for f in futures]
+
+
+PARTS = ("t", "q", "intrinsics", "image_sizes", "uv", "points", "descriptors", "thumbnails", "counts")
+
+
+def _sequence_parts(sequence, features: FeatureConfig) -> dict[str, list]:
+    """The map's arrays (:data:`PARTS`, one entry per keyframe) of one keyframe sequence."""
+    from vlocnetpp_core.retrieval import describe
+
+    extractor = FeatureExtractor(features)
+    frames = sequence.frames()
+    found = [_static_features(extractor, f) for f in frames]
+    parts: dict[str, list] = {k: [] for k in PARTS}
+    for j, (frame, feats) in enumerate(zip(frames, found, strict=True)):
+        keep, points = _points_of(frames, found, j, features.ratio)
+        _append(parts, frame, feats, keep, points, describe(frame.image))
+    return parts
 
 
 def _static_features(extractor: FeatureExtractor, frame) -> Features:

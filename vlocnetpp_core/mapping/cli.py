@@ -1,7 +1,9 @@
 """``vlocnetpp map``: build and inspect keyframe maps for the refinement (:mod:`vlocnetpp_core.mapping`).
 
 * ``vlocnetpp map build OUT.npz --data DIR [--data DIR ...]``: the map of the datasets' ``--split`` (default
-  ``train``: the images a model was trained on); refuses an existing OUT without ``--force``, writes it atomically.
+  ``train``: the images a model was trained on); or ``--scene NAME --seed S --loops N --frames-per-loop F``: the map
+  of the train split ``vlocnetpp synth`` would render with those arguments, rendering only its keyframes (the same
+  map, without the dataset). Refuses an existing OUT without ``--force``, writes it atomically.
 * ``vlocnetpp map info MAP.npz``: keyframes, points and where they came from.
 """
 
@@ -13,7 +15,9 @@ import time
 from pathlib import Path
 
 from vlocnetpp_core.errors import UserError
+from vlocnetpp_core.mapping.build import ANGLE_DEG, SPACING_M
 from vlocnetpp_core.outputs import refuse_existing
+from vlocnetpp_core.synth.cli import parse_size
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -21,14 +25,21 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     b = sub.add_parser("build", help="build a map from datasets with poses (and depth, else triangulated)",
                        description="Build a keyframe map (keyframes, SIFT features and their 3D points) of datasets with known poses.")
     b.add_argument("out", metavar="OUT", help="map file to write (.npz)")
-    b.add_argument("--data", action="append", required=True, metavar="DIR",
-                   help="dataset folder (DeepLoc layout or 7-Scenes); repeat for several")
+    what = b.add_mutually_exclusive_group(required=True)
+    what.add_argument("--data", action="append", metavar="DIR", help="dataset folder (DeepLoc layout or 7-Scenes); repeat for several")
+    what.add_argument("--scene", metavar="NAME", help="synthetic scene (as 'vlocnetpp synth --scene'): render only the keyframes of its train visits")
     b.add_argument("--format", choices=("deeploc", "7scenes"), default=None, help="dataset format (default: detected from the layout)")
-    b.add_argument("--split", default="train", help="split to build the map of (default: train, the model's training images)")
-    b.add_argument("--spacing", type=float, default=5.0, metavar="M",
-                   help="a new keyframe every M metres along each sequence (default 5)")
-    b.add_argument("--angle", type=float, default=20.0, metavar="DEG", help="... or every DEG degrees of turn (default 20)")
+    b.add_argument("--split", default="train", help="split of --data to build the map of (default: train, the model's training images)")
+    b.add_argument("--seed", type=int, default=0, help="with --scene: the visits' seed, as 'vlocnetpp synth --seed' (default 0)")
+    b.add_argument("--loops", type=int, default=4, help="with --scene: train visits, as 'vlocnetpp synth --loops' (default 4)")
+    b.add_argument("--frames-per-loop", type=int, default=175, metavar="F", help="with --scene: as 'vlocnetpp synth' (default 175)")
+    b.add_argument("--size", type=parse_size, default=(320, 180), metavar="WxH", help="with --scene: image size, as 'vlocnetpp synth' (default 320x180)")
+    b.add_argument("--lane-wander", type=float, default=0.0, metavar="M", help="with --scene: as 'vlocnetpp synth' (default 0)")
+    b.add_argument("--spacing", type=float, default=SPACING_M, metavar="M",
+                   help=f"a new keyframe every M metres along each sequence (default {SPACING_M:g}, the shipped map's)")
+    b.add_argument("--angle", type=float, default=ANGLE_DEG, metavar="DEG", help=f"... or every DEG degrees of turn (default {ANGLE_DEG:g})")
     b.add_argument("--max-features", type=int, default=1500, metavar="N", help="SIFT keypoints per keyframe at most (default 1500)")
+    b.add_argument("--workers", type=int, default=0, metavar="N", help="processes (default 0: one per core); the map is the same for any N")
     b.add_argument("--force", action="store_true", help="replace OUT if it exists (only once the new map is complete)")
     b.add_argument("--no-progress", action="store_true", help="no progress bar")
     i = sub.add_parser("info", help="summarise a map file", description="Keyframes, points and sources of a map file.")
@@ -53,18 +64,20 @@ def _check_build_args(args: argparse.Namespace) -> Path:
         raise UserError(f"--spacing and --angle must be positive, got {args.spacing} and {args.angle}")
     if args.max_features < 20:
         raise UserError(f"--max-features must be >= 20, got {args.max_features}")
+    if args.workers < 0:
+        raise UserError(f"--workers must be >= 0 (0: one per core), got {args.workers}")
     return out
 
 
 def _build(args: argparse.Namespace) -> int:
     out = _check_build_args(args)
-    from vlocnetpp_core.data import open_dataset
-    from vlocnetpp_core.mapping.build import build_map
+    from vlocnetpp_core.mapping.build import build_map_of
     from vlocnetpp_core.mapping.features import FeatureConfig
 
-    indexes = [open_dataset(d, args.format, args.split) for d in args.data]
     start = time.perf_counter()
-    m = build_map(indexes, args.spacing, args.angle, FeatureConfig(max_features=args.max_features), progress=not args.no_progress)
+    sequences, source = _keyframe_sequences(args)
+    workers = args.workers or os.cpu_count() or 1
+    m = build_map_of(sequences, source, FeatureConfig(max_features=args.max_features), not args.no_progress, workers)
     try:
         m.save(out)
     except OSError as err:
@@ -72,6 +85,25 @@ def _build(args: argparse.Namespace) -> int:
     print(f"wrote {out}: {len(m)} keyframes, {m.num_points} points ({m.num_points / len(m):.0f} a keyframe), "
           f"{out.stat().st_size / 1e6:.1f} MB, in {time.perf_counter() - start:.0f} s")
     return 0
+
+
+def _keyframe_sequences(args: argparse.Namespace) -> tuple[list, str]:
+    """The keyframe sequences (:mod:`.sources`) of ``--data`` or ``--scene``, and where they come from in words."""
+    from vlocnetpp_core.mapping import sources
+
+    if args.data:
+        from vlocnetpp_core.data import open_dataset
+
+        indexes = [open_dataset(d, args.format, args.split) for d in args.data]
+        return sources.dataset_keyframes(indexes, args.spacing, args.angle), "; ".join(f"{ix.root} ({ix.split})" for ix in indexes)
+    from vlocnetpp_core.synth.writer import check_render_args
+
+    if args.loops < 1:
+        raise UserError(f"--loops must be >= 1 with --scene, got {args.loops}")
+    size = check_render_args(args.scene, args.seed, args.loops, 0, args.frames_per_loop, args.size, None, args.lane_wander)
+    return (sources.scene_keyframes(args.scene, args.seed, args.loops, args.frames_per_loop, args.spacing, args.angle, size,
+                                    args.lane_wander),
+            sources.scene_source(args.scene, args.seed, args.loops, args.frames_per_loop, size, args.lane_wander))
 
 
 def _info(args: argparse.Namespace) -> int:

@@ -5,7 +5,8 @@ from __future__ import annotations
 import argparse
 
 
-def _size(text: str) -> tuple[int, int]:
+def parse_size(text: str) -> tuple[int, int]:
+    """``'WIDTHxHEIGHT'`` -> ``(width, height)`` (an argparse ``type``)."""
     try:
         w, h = (int(v) for v in text.lower().split("x"))
     except ValueError as err:
@@ -22,7 +23,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--loops", type=int, default=4, metavar="N", help="train loops (default: 4; with 4 or more every circuit/direction is covered)")
     parser.add_argument("--test-loops", type=int, default=2, metavar="N", help="test loops (default: 2)")
     parser.add_argument("--frames-per-loop", type=int, default=DEFAULT_FRAMES_PER_LOOP, metavar="N", help=f"frames per loop (default: {DEFAULT_FRAMES_PER_LOOP})")
-    parser.add_argument("--size", type=_size, default=(320, 180), metavar="WxH", help="image size WIDTHxHEIGHT (default: 320x180)")
+    parser.add_argument("--size", type=parse_size, default=(320, 180), metavar="WxH", help="image size WIDTHxHEIGHT (default: 320x180)")
     parser.add_argument("--frame-interval", type=float, default=None, metavar="SECONDS",
                         help="time between frames, e.g. 0.05 for 20 Hz video (default: spread each loop's frames over one lap, ~1 m apart)")
     parser.add_argument("--test-lane-offset", type=float, default=None, metavar="METRES",

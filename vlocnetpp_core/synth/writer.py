@@ -52,7 +52,9 @@ def format_pose(name: str, t: np.ndarray, q: np.ndarray) -> str:
     return f"{name} {t[0]:.6f} {t[1]:.6f} {t[2]:.6f} {q[0]:.8f} {q[1]:.8f} {q[2]:.8f} {q[3]:.8f}"
 
 
-def _check_args(scene: str, seed: int, train_loops: int, test_loops: int, frames_per_loop: int, size, frame_interval) -> tuple[int, int]:
+def check_render_args(scene: str, seed: int, train_loops: int, test_loops: int, frames_per_loop: int, size, frame_interval,
+                      lane_wander: float = 0.0) -> tuple[int, int]:
+    """``(width, height)`` of ``size``; :class:`UserError` naming the flag of the first bad argument."""
     if not isinstance(scene, str) or not re.fullmatch(r"[A-Za-z0-9_.-]{1,64}", scene):
         raise UserError(f"--scene must be a name of letters, digits, '_', '.', '-' (at most 64), got {scene!r}")
     if int(seed) < 0:
@@ -71,6 +73,8 @@ def _check_args(scene: str, seed: int, train_loops: int, test_loops: int, frames
         raise UserError(f"--size must be between 16x16 and 4096x4096, got {w}x{h}")
     if frame_interval is not None and not frame_interval > 0:
         raise UserError(f"--frame-interval must be positive, got {frame_interval}")
+    if not (math.isfinite(lane_wander) and 0 <= lane_wander <= MAX_LANE_OFFSET_M):
+        raise UserError(f"--lane-wander must be within 0 and {MAX_LANE_OFFSET_M:g} m, got {lane_wander}")
     return w, h
 
 
@@ -97,11 +101,9 @@ def render_dataset(
     drift slowly up to that far either side of its lane (``plan_visit``). Raises :class:`UserError` for bad arguments or
     an existing ``out`` without ``force``.
     """
-    w, h = _check_args(scene, seed, train_loops, test_loops, frames_per_loop, size, frame_interval)
+    w, h = check_render_args(scene, seed, train_loops, test_loops, frames_per_loop, size, frame_interval, lane_wander)
     if test_lane_offset is not None and not (math.isfinite(test_lane_offset) and abs(test_lane_offset) <= MAX_LANE_OFFSET_M):
         raise UserError(f"--test-lane-offset must be within +-{MAX_LANE_OFFSET_M:g} m of the centreline (the sidewalks), got {test_lane_offset}")
-    if not (math.isfinite(lane_wander) and 0 <= lane_wander <= MAX_LANE_OFFSET_M):
-        raise UserError(f"--lane-wander must be within 0 and {MAX_LANE_OFFSET_M:g} m, got {lane_wander}")
     out = Path(out)
     with atomic_output_dir(out, force) as tmp:
         summary = _render_into(tmp, scene, int(seed), train_loops, test_loops, frames_per_loop, (w, h), progress, frame_interval,
