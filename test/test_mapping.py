@@ -225,7 +225,7 @@ def test_map_build_refuses_bad_input_naming_it_and_leaves_nothing(campus, tmp_pa
         ([str(out / "taken.npz")], "use --force"),
         ([str(out / "map.txt")], "ends in .npz"),
         ([str(out / "folder.npz")], "is a folder"),
-        ([str(out / "afile" / "map.npz")], "not a writable folder"),
+        ([str(out / "afile" / "map.npz")], "is not a folder"),
         ([str(out / "m.npz"), "--split", "test"], "no images found"),
         ([str(out / "m.npz"), "--spacing", "0"], "must be positive"),
         ([str(out / "m.npz"), "--data", str(tmp_path / "missing")], "missing"),

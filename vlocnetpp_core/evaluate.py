@@ -118,7 +118,7 @@ def run_localizer(localizer, index, max_frames: int | None = None, samples: int 
                 if describe or structure is not None:
                     described.append(describe_image(frame.image))
                 if structure is not None:
-                    located.append(_locate(structure, frame, described[-1])[:2])
+                    located.append(structure.locate_image(frame.image, frame.intrinsics, described[-1])[:2])
                 track.add(out)
                 recorder.add(frame.stamp, frame.t, frame.q, out.network_t, out.network_q, out.rel_t, out.rel_q, out.seconds * 1000.0)
                 if out.mask is None:  # a pose-only model
@@ -139,12 +139,6 @@ def run_localizer(localizer, index, max_frames: int | None = None, samples: int 
     finally:
         bar.close()
     return run
-
-
-def _locate(refiner, frame, thumbnail: np.ndarray):
-    """The structure-based baseline's ``(t, q, refinement)`` of a dataset frame."""
-    grey, K = refiner.prepare(frame.image, frame.intrinsics)
-    return refiner.locate(refiner.extract(grey), thumbnail, K)
 
 
 def run(args: argparse.Namespace) -> int:

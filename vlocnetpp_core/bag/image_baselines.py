@@ -15,13 +15,10 @@ def describe_frames(reader: BagReader, where: dict[int, tuple[int, int]],
                     refiner=None) -> tuple[list[np.ndarray], list[tuple[np.ndarray, np.ndarray]] | None]:
     """Pass 3: per sequence, the retrieval descriptors ``(N_k, D)`` of the camera images of the frames in ``where``
     (stamp -> (sequence, position)) and, with ``refiner`` (a :class:`~vlocnetpp_core.mapping.refiner.Refiner`), the
-    structure-based baseline's poses ``(t (N_k, 3), q (N_k, 4))`` of those images (``evaluate``'s ``_locate``; the
+    structure-based baseline's poses ``(t (N_k, 3), q (N_k, 4))`` of those images (``Refiner.locate_image``; the
     intrinsics of the latest ``/camera/camera_info``, that of the image's log time included), else None.
     ``DataError`` when the bag has no camera image for one of them, or (with ``refiner``) no camera info before it."""
-    from types import SimpleNamespace
-
     from vlocnetpp_core.bag.replay import groups_by_log_time
-    from vlocnetpp_core.evaluate import _locate
     from vlocnetpp_core.retrieval import describe
 
     image_topic = next((t for t in IMAGE_TOPICS if t in reader.topics), None)
@@ -50,7 +47,7 @@ def describe_frames(reader: BagReader, where: dict[int, tuple[int, int]],
                 if intrinsics is None:
                     raise DataError(reader.path, f"--map: no {CAMERA_INFO_TOPIC} up to the image at stamp {ns / 1e9:.9f} s "
                                                  "(the structure-based baseline needs the camera's intrinsics)")
-                t, q, _ = _locate(refiner, SimpleNamespace(image=rgb, intrinsics=intrinsics), d)
+                t, q, _ = refiner.locate_image(rgb, intrinsics, d)
                 located[k][0][position], located[k][1][position] = t, q
     for k, ok in enumerate(seen):
         if not ok.all():

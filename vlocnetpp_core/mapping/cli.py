@@ -16,7 +16,7 @@ from pathlib import Path
 
 from vlocnetpp_core.errors import UserError
 from vlocnetpp_core.mapping.build import ANGLE_DEG, SPACING_M
-from vlocnetpp_core.outputs import refuse_existing
+from vlocnetpp_core.outputs import check_writable, refuse_existing
 from vlocnetpp_core.synth.cli import parse_size
 
 
@@ -57,9 +57,7 @@ def _check_build_args(args: argparse.Namespace) -> Path:
     if out.is_dir():
         raise UserError(f"{out}: is a folder; give a file name ending in .npz")
     refuse_existing(out, args.force)
-    parent = out.parent if str(out.parent) else Path(".")
-    if parent.exists() and not (parent.is_dir() and os.access(parent, os.W_OK)):
-        raise UserError(f"{parent}: cannot write the map there (not a writable folder)")
+    check_writable(out.parent, out)
     if not (args.spacing > 0 and args.angle > 0):
         raise UserError(f"--spacing and --angle must be positive, got {args.spacing} and {args.angle}")
     if args.max_features < 20:

@@ -142,6 +142,12 @@ class Refiner:
             return result.solution.t, result.solution.q, result
         return self.map.t[keyframes[0]].copy(), self.map.q[keyframes[0]].copy(), result
 
+    def locate_image(self, image: np.ndarray, intrinsics, thumbnail: np.ndarray) -> tuple[np.ndarray, np.ndarray, Refinement]:
+        """:meth:`locate` of an ``(H, W, 3)`` RGB image with its :class:`~vlocnetpp_core.intrinsics.Intrinsics` and
+        retrieval descriptor ``thumbnail (288,)`` (:func:`vlocnetpp_core.retrieval.describe` of it)."""
+        grey, K = self.prepare(image, intrinsics)
+        return self.locate(self.extract(grey), thumbnail, K)
+
     def _solve(self, features: Features, K: np.ndarray, keyframes: np.ndarray, keep: np.ndarray | None = None,
                matches: dict | None = None) -> Refinement:
         """Match ``features`` (where ``keep``) with ``keyframes``, PnP, and the inlier and reprojection checks."""
