@@ -7,7 +7,8 @@
 
 Per seed: ``--test-loops`` loops of ``--frames-per-loop`` frames of the synthetic campus (``vlocnetpp synth --seed S
 --loops 0``), then ``vlocnetpp evaluate`` of every checkpoint (with ``--map``: its refinement and the structure-based
-baseline; ``--reference``: the retrieval baseline) on the same frames. Prints one markdown table (each seed's rows,
+baseline; ``--reference``: the retrieval baseline) on the same frames, with its per-frame trajectories
+(``LABEL.seedS.trajectories/``, TUM files). Prints one markdown table (each seed's rows,
 then the mean and the worst seed of every row) and writes it with the reports to ``--out``. Seeds drawn are printed
 first; seeds that trained, validated or ranked anything (:data:`SPENT`, docs/results.md) are never drawn. Choices
 between variants belong on validation seeds (seed 11); a seed that ranked variants is spent: add it to SPENT.
@@ -21,6 +22,7 @@ import random
 import subprocess
 import sys
 import warnings
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -49,6 +51,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--test-loops", type=int, default=3, help="test loops per seed (default 3)")
     p.add_argument("--frames-per-loop", type=int, default=175, help="frames per loop (default 175)")
     p.add_argument("--out", default="runs/fresh-visits", help="folder of the rendered loops, reports and table")
+    p.add_argument("--jobs", type=int, default=1, metavar="N", help="seeds rendered and scored at once (default 1)")
     args = p.parse_args(argv)
     spent = sorted(SPENT & set(args.seed))
     if spent:
@@ -85,7 +88,8 @@ def score(args: argparse.Namespace, seed: int, label: str, checkpoint: str) -> d
         print(f"scoring {label} on visit seed {seed}", file=sys.stderr)
         extra = ["--map", args.map, "--refine-every", str(args.refine_every)] if args.map else []
         vlocnetpp("evaluate", "--checkpoint", checkpoint, "--data", str(data), "--reference", args.reference, *extra,
-                  "--threshold-m", "0.1", "--threshold-deg", "1", "--json", str(report), "--no-progress")
+                  "--threshold-m", "0.1", "--threshold-deg", "1", "--json", str(report), "--no-progress",
+                  "--trajectories", str(out / f"{label}.seed{seed}.trajectories"))
     return json.loads(report.read_text())
 
 
@@ -134,11 +138,15 @@ def main(argv: list[str] | None = None) -> int:
     checkpoints = [c.split("=", 1) if "=" in c else (Path(c).stem, c) for c in args.checkpoint] or [("shipped", "models/vlocnetpp_lite.safetensors")]
     print(f"visit seeds: {' '.join(map(str, seeds))} ({args.test_loops} test loops of {args.frames_per_loop} frames each)", flush=True)
     Path(args.out).mkdir(parents=True, exist_ok=True)
-    per_seed = {}
-    for seed in seeds:
-        per_seed[seed] = {}
+
+    def rows_of_seed(seed: int) -> dict[str, dict]:
+        rows: dict[str, dict] = {}
         for k, (label, ckpt) in enumerate(checkpoints):
-            per_seed[seed].update(rows_of(label, score(args, seed, label, ckpt), first=k == 0))
+            rows.update(rows_of(label, score(args, seed, label, ckpt), first=k == 0))
+        return rows
+
+    with ThreadPoolExecutor(max(1, args.jobs)) as pool:
+        per_seed = dict(zip(seeds, pool.map(rows_of_seed, seeds), strict=True))
     text = f"visit seeds {' '.join(map(str, seeds))}; map {args.map or 'none'}, refine every {args.refine_every}\n\n{table(per_seed)}\n"
     (Path(args.out) / "table.md").write_text(text)
     print(text)

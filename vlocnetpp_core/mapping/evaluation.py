@@ -20,7 +20,7 @@ from vlocnetpp_core.metrics import DEFAULT_THRESHOLDS, evaluate_sequences
 
 STRUCTURE_NAME = "structure-based"
 STRUCTURE_METHOD = ("the 4 map keyframes most similar to the image (gradient thumbnails), SIFT ratio-test matches, "
-                    "EPnP RANSAC + Levenberg-Marquardt; the most similar keyframe's pose under 20 inliers; no network")
+                    "AP3P RANSAC + Levenberg-Marquardt; the most similar keyframe's pose under 20 inliers; no network")
 
 
 @dataclass
