@@ -43,7 +43,7 @@ def probe_batch(trainer) -> dict[str, torch.Tensor]:
 @torch.no_grad()
 def probe_losses(model, criterion, batch: dict[str, torch.Tensor], stage: str) -> dict[str, float]:
     """The raw loss terms (``parts``, not the learned weighting) of ``model`` on ``batch`` (module doc)."""
-    from vlocnetpp_core.trainer import forward_stage
+    from vlocnetpp_core.training.trainer import forward_stage
 
     probe = copy.deepcopy(model).train()
     for m in probe.modules():
@@ -56,7 +56,7 @@ def probe_losses(model, criterion, batch: dict[str, torch.Tensor], stage: str) -
 
 def train_probed(args: list[str]) -> tuple[dict[str, float], dict[str, float]]:
     """Run ``vlocnetpp train ARGS`` in-process; the probe losses of its network before and after the run."""
-    from vlocnetpp_core.trainer import Trainer
+    from vlocnetpp_core.training.trainer import Trainer
 
     trainer = Trainer(build_parser("train").parse_args(args))
     batch = probe_batch(trainer)

@@ -17,9 +17,9 @@ from vlocnetpp_core.cli import main as cli
 from vlocnetpp_core.data import open_dataset
 from vlocnetpp_core.errors import UserError
 from vlocnetpp_core.model import load_model_config
-from vlocnetpp_core.recipe import load_recipe, stage_commands, stage_weights
-from vlocnetpp_core.recipe_run import run_recipe
 from vlocnetpp_core.retrieval import ReferenceSet
+from vlocnetpp_core.training.recipe import load_recipe, stage_commands, stage_weights
+from vlocnetpp_core.training.recipe_run import run_recipe
 
 WANDER = {"synth": {"seed": 0, "loops": 3, "test_loops": 0, "frames_per_loop": 8, "size": [64, 48], "lane_wander": 1.0}}
 

@@ -12,16 +12,16 @@ Every step unrolls clips of ``--clip-len`` frames through ``model.forward_clip``
 previous-frame features the network fuses come from its own previous step (never from ground
 truth). Run folder (``--out``): ``last.safetensors/.json`` and ``best.safetensors/.json``
 checkpoints (inference sidecar with calibration; ``best`` has the lowest validation
-:func:`~vlocnetpp_core.losses.selection_score`: the raw pose, odometry and segmentation errors
+:func:`~vlocnetpp_core.training.losses.selection_score`: the raw pose, odometry and segmentation errors
 relative to the first validation, not the loss with its moving learned weights), ``train_state.*`` (optimiser, loss weights,
 RNG, step) for ``--resume``, ``log.jsonl`` (every loss and the learning rate per step, and each
 validation), all written atomically.
 
-Distributed: ``torchrun --nproc-per-node N -m vlocnetpp_core.train --config ... --data ...``
+Distributed: ``torchrun --nproc-per-node N -m vlocnetpp_core.training.train --config ... --data ...``
 (gloo on CPU, nccl on GPU). Each rank takes a disjoint share of the clips of every epoch (a
 clip never straddles ranks); rank 0 alone validates and writes files.
 
-This module is the command line; :class:`vlocnetpp_core.trainer.Trainer` runs one stage,
+This module is the command line; :class:`vlocnetpp_core.training.trainer.Trainer` runs one stage,
 ``train_data`` holds the clips and their order, ``model/assembly.py`` the rules of ``--init``,
 and ``recipe`` (``--recipe``) runs a whole schedule.
 """
@@ -35,9 +35,9 @@ import sys
 import torch
 
 from vlocnetpp_core.errors import UserError
-from vlocnetpp_core.losses import S_Q_INIT
 from vlocnetpp_core.model.stages import PARTS, STAGES
 from vlocnetpp_core.outputs import check_run_dir
+from vlocnetpp_core.training.losses import S_Q_INIT
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -120,7 +120,7 @@ def _parts(text: str) -> tuple[str, ...]:
 def run(args: argparse.Namespace) -> int:
     check_run_dir(args.out)  # a file there or a folder that cannot be written: one line, before anything is read
     if args.recipe:
-        from vlocnetpp_core.recipe_run import run_recipe
+        from vlocnetpp_core.training.recipe_run import run_recipe
 
         return run_recipe(args.recipe, args.out)
     missing = [f"--{k}" for k in ("config", "data", "stage") if getattr(args, k) is None]
@@ -129,7 +129,7 @@ def run(args: argparse.Namespace) -> int:
     if args.epochs is not None and args.epochs <= 0:
         raise UserError(f"--epochs must be > 0, got {args.epochs:g} (--steps 0 assembles mtl from its stages without training)")
     from vlocnetpp_core.model import load_model_config, stage_tasks
-    from vlocnetpp_core.trainer import Trainer
+    from vlocnetpp_core.training.trainer import Trainer
 
     try:
         stage_tasks(args.stage, load_model_config(args.config).tasks)  # before the run folder is made
@@ -140,7 +140,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(prog="python -m vlocnetpp_core.train", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m vlocnetpp_core.training.train", description=__doc__.splitlines()[0])
     add_arguments(parser)
     try:
         return run(parser.parse_args())

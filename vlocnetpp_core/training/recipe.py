@@ -26,7 +26,7 @@ folder and resume it, e.g. to use a stage's early weights as another's init and 
 ``data`` / ``val_data`` (dataset names), ``config`` (this stage's model config instead of the
 recipe's: a built-in name or a YAML file relative to the recipe; e.g. a stage that learns a
 shared trunk with another head), and any other ``vlocnetpp train`` flag (``threads``, ``frame_strides``,
-``s_q_init``, ``val_split``, ...; lists become comma-separated). Running it (:mod:`vlocnetpp_core.recipe_run`):
+``s_q_init``, ``val_split``, ...; lists become comma-separated). Running it (:mod:`vlocnetpp_core.training.recipe_run`):
 every dataset render and every stage is its own process (a stage's thread count its own); a stage starts as
 soon as its datasets are rendered, the stages it takes weights from have finished and its ``threads`` fit
 in the free cores, logs to ``DIR/<name>.log``, and is

@@ -13,15 +13,15 @@ DTYPES = {"float16": torch.float16, "float32": torch.float32}
 
 
 def export_weights(recipe, out: Path) -> Path:
-    """Write ``recipe.export`` (see :mod:`vlocnetpp_core.recipe`) and return the weights path.
+    """Write ``recipe.export`` (see :mod:`vlocnetpp_core.training.recipe`) and return the weights path.
 
     The covariance calibration is the exported run's (from its validation); when that run did not
     validate, the pose variances come from the ``calibration.pose`` stage and the odometry variances
     from the ``calibration.odometry`` stage (their ``best`` sidecars).
     """
     from vlocnetpp_core.checkpoint import load_checkpoint, save_checkpoint
-    from vlocnetpp_core.recipe import dataset_path
     from vlocnetpp_core.retrieval import ReferenceSet, open_reference, reference_of
+    from vlocnetpp_core.training.recipe import dataset_path
 
     spec = recipe.export
     weights = spec.get("weights", "best")
@@ -49,7 +49,7 @@ def export_weights(recipe, out: Path) -> Path:
 
 def _stage_calibration(recipe, out: Path, stages: dict) -> dict:
     """Pose variances from the sidecar of ``stages['pose']``'s weights (``best`` or ``last``), odometry variances from ``stages['odometry']``'s."""
-    from vlocnetpp_core.recipe import stage_weights
+    from vlocnetpp_core.training.recipe import stage_weights
 
     parts = {}
     for kind, stage in stages.items():

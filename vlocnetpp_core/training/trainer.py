@@ -22,15 +22,15 @@ import torch
 import torch.distributed as dist
 
 from vlocnetpp_core.errors import UserError
-from vlocnetpp_core.losses import selection_score
-from vlocnetpp_core.lr_schedule import LearningRatePhase
 from vlocnetpp_core.model.assembly import builds_semantic_fusion, frozen_trunk
 from vlocnetpp_core.model.stages import mirrors_clips, stage_tasks
 from vlocnetpp_core.model.vlocnet import StepOutput
 from vlocnetpp_core.outputs import make_dirs
 from vlocnetpp_core.threads import use_threads
-from vlocnetpp_core.train_data import EpochSampler, SeededClips, split_validation, training_clips
-from vlocnetpp_core.train_init import load_inits
+from vlocnetpp_core.training.losses import selection_score
+from vlocnetpp_core.training.lr_schedule import LearningRatePhase
+from vlocnetpp_core.training.train_data import EpochSampler, SeededClips, split_validation, training_clips
+from vlocnetpp_core.training.train_init import load_inits
 
 DEFAULT_LR = {"stl-loc": 1e-3, "stl-vo": 1e-3, "stl-seg": 1e-3, "mtl": 1e-4}
 DEFAULT_CROP_SCALE = {"stl-seg": 1.15}  # the pose stages: 1 (no geometric augmentation)
@@ -117,8 +117,8 @@ class Trainer:
 
     def _setup_model(self) -> None:
         """The network (position prior, inits, backbone), the loss with its learned weights, the optimiser."""
-        from vlocnetpp_core.losses import VLocNetLoss
         from vlocnetpp_core.model import VLocNetPP, train_only
+        from vlocnetpp_core.training.losses import VLocNetLoss
 
         args = self.args
         self.model = model = VLocNetPP(self.config)
@@ -155,7 +155,7 @@ class Trainer:
         ``fresh`` (``--restart``, a warm restart): the optimiser state (Adam's moments) and the learned loss weights start
         anew, as at the start of the run, and only the weights, RNG, step and best score come back."""
         from vlocnetpp_core.checkpoint import read_checkpoint_tensors
-        from vlocnetpp_core.train_state import load_train_state
+        from vlocnetpp_core.training.train_state import load_train_state
 
         args, out = self.args, self.out
         meta = load_train_state(out, optimizer=None if fresh else self.optimizer, criterion=None if fresh else self.criterion)
@@ -268,7 +268,7 @@ class Trainer:
     def save(self, is_best: bool) -> None:
         """``last`` (and ``best``) checkpoints with their sidecar, and the resumable state, atomically."""
         from vlocnetpp_core.checkpoint import save_checkpoint
-        from vlocnetpp_core.train_state import save_train_state
+        from vlocnetpp_core.training.train_state import save_train_state
 
         meta = {"training": {**self.summary(), "step": self.step}, "intrinsics": self.train_index.intrinsics.resized(*self.size).to_dict()}
         if self.calibration:

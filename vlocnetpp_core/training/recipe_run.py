@@ -1,5 +1,5 @@
 """Running a recipe (``vlocnetpp train --recipe FILE --out DIR``): its datasets and stages as soon as they can
-start, then its export. The file format and each stage's commands: :mod:`vlocnetpp_core.recipe`.
+start, then its export. The file format and each stage's commands: :mod:`vlocnetpp_core.training.recipe`.
 
 Every dataset still to render (``vlocnetpp synth``, one core each) and every stage (``vlocnetpp train``, on its
 ``threads``) is a job: its own process, scheduled on the machine's cores. The datasets come first, those of the
@@ -32,8 +32,8 @@ from typing import IO
 
 from vlocnetpp_core.errors import UserError
 from vlocnetpp_core.interrupts import sigterm_as_interrupt
-from vlocnetpp_core.recipe import Recipe, Stage, dataset_path, load_recipe, stage_commands
 from vlocnetpp_core.threads import resolve_threads
+from vlocnetpp_core.training.recipe import Recipe, Stage, dataset_path, load_recipe, stage_commands
 
 POLL_S = 1.0  # how often the scheduler looks at its running jobs
 
@@ -53,7 +53,7 @@ def run_recipe(path: str | Path, out: str | Path, cores: int | None = None) -> i
         with sigterm_as_interrupt():
             run_jobs(recipe_jobs(recipe, out), out, log, cores)
             if recipe.export:
-                from vlocnetpp_core.recipe_export import export_weights
+                from vlocnetpp_core.training.recipe_export import export_weights
 
                 log(f"export: {export_weights(recipe, out)}")
     finally:
