@@ -12,6 +12,7 @@ import os
 import time
 from pathlib import Path
 
+from vlocnetpp_core.data.formats import FORMATS
 from vlocnetpp_core.errors import UserError
 from vlocnetpp_core.outputs import refuse_existing
 
@@ -23,7 +24,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     b.add_argument("out", metavar="OUT", help="map file to write (.npz)")
     b.add_argument("--data", action="append", required=True, metavar="DIR",
                    help="dataset folder (DeepLoc layout or 7-Scenes); repeat for several")
-    b.add_argument("--format", choices=("deeploc", "7scenes"), default=None, help="dataset format (default: detected from the layout)")
+    b.add_argument("--format", choices=FORMATS, default=None, help="dataset format (default: detected from the layout)")
     b.add_argument("--split", default="train", help="split to build the map of (default: train, the model's training images)")
     b.add_argument("--spacing", type=float, default=5.0, metavar="M",
                    help="a new keyframe every M metres along each sequence (default 5)")
