@@ -9,8 +9,6 @@ import torch
 
 from vlocnetpp_core.errors import UserError
 
-DTYPES = {"float16": torch.float16, "float32": torch.float32}
-
 
 def export_weights(recipe, out: Path) -> Path:
     """Write ``recipe.export`` (see :mod:`vlocnetpp_core.training.recipe`) and return the weights path.
@@ -23,13 +21,13 @@ def export_weights(recipe, out: Path) -> Path:
     from vlocnetpp_core.retrieval import ReferenceSet, open_reference, reference_of
     from vlocnetpp_core.training.recipe import dataset_path
 
-    spec = recipe.export
+    spec = recipe.export  # checked by load_recipe
     weights = spec.get("weights", "best")
-    run_dir = out / spec["stage"]
-    source = run_dir / weights if (run_dir / f"{weights}.safetensors").is_file() else run_dir / "last"
-    dtype = DTYPES.get(str(spec.get("dtype", "float16")))
-    if dtype is None:
-        raise UserError(f"{recipe.path}: export dtype must be one of {', '.join(DTYPES)}")
+    source = out / spec["stage"] / weights
+    if not source.with_suffix(".safetensors").is_file():  # best: no validation of the run scored (every score NaN)
+        raise UserError(f"{recipe.path}: export weights '{weights}': {source.with_suffix('.safetensors')} was not written "
+                        f"by stage {spec['stage']}")
+    dtype = getattr(torch, str(spec.get("dtype", "float16")))  # one of recipe.EXPORT_DTYPES
     model, meta = load_checkpoint(source)
     calibration = meta.get("calibration") or {}
     if calibration.get("source", "default") == "default" and spec.get("calibration"):
