@@ -9,9 +9,9 @@ first use, so that the torch-free modules (``formats``, ``imageio``, ``pfm``, ..
 
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
+from vlocnetpp_core import lazy_getattr
 from vlocnetpp_core.data.formats import FORMATS
 
 _EXPORTS = {
@@ -36,10 +36,4 @@ if TYPE_CHECKING:
     from vlocnetpp_core.data.transforms import make_transform  # noqa: F401
 
 
-def __getattr__(name: str) -> Any:
-    module = _EXPORTS.get(name)
-    if module is None:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(importlib.import_module(f"{__name__}.{module}"), name)
-    globals()[name] = value
-    return value
+__getattr__ = lazy_getattr(__name__, _EXPORTS, globals())

@@ -7,8 +7,9 @@ recipe is checked against) import without torch.
 
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
+
+from vlocnetpp_core import lazy_getattr
 
 _EXPORTS = {
     "ModelConfig": "config",
@@ -56,10 +57,4 @@ if TYPE_CHECKING:
     from vlocnetpp_core.model.vlocnet import TASKS, StepOutput, StreamState, VLocNetPP  # noqa: F401
 
 
-def __getattr__(name: str) -> Any:
-    module = _EXPORTS.get(name)
-    if module is None:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(importlib.import_module(f"{__name__}.{module}"), name)
-    globals()[name] = value
-    return value
+__getattr__ = lazy_getattr(__name__, _EXPORTS, globals())
