@@ -10,6 +10,7 @@ This module imports no torch, so that a recipe is checked in well under a second
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
 import os
@@ -136,6 +137,7 @@ class TrainConfig:
         return self.crop_scale if self.crop_scale is not None else stage_spec(self.stage).crop_scale
 
 
+@functools.cache
 def _hints() -> dict[str, Any]:
     return typing.get_type_hints(TrainConfig)
 
