@@ -151,8 +151,7 @@ def _known(entry: dict, known, where: str, refused=()) -> None:
         if key in refused:
             raise UserError(f"{where}: '{key}' is set by the recipe (the schedule, the run folder, init), not by a stage")
         if key not in known:
-            raise UserError(f"{where}: unknown key '{key}' (a stage takes {', '.join(STAGE_KEYS)} and the train keys "
-                            f"{', '.join(k for k in TrainConfig.keys() if k not in SET_BY_RECIPE)})")
+            raise UserError(f"{where}: unknown key '{key}' (known: {', '.join(dict.fromkeys(k for k in known if k not in refused))})")
 
 
 def _stage(raw, k: int, names: list, defaults: dict, datasets: dict, path: Path) -> Stage:
