@@ -18,6 +18,7 @@ from collections.abc import Iterator
 import torch
 
 from vlocnetpp_core.cli import build_parser
+from vlocnetpp_core.training.config import TrainConfig
 
 
 @contextlib.contextmanager
@@ -36,14 +37,14 @@ def probe_batch(trainer) -> dict[str, torch.Tensor]:
     from vlocnetpp_core.data import ClipDataset, make_transform
 
     seg = "seg" in trainer.tasks
-    clips = ClipDataset(trainer.train_index, trainer.args.clip_len, make_transform(False, trainer.size), depth=seg, labels=seg)
+    clips = ClipDataset(trainer.train_index, trainer.config.clip_len, make_transform(False, trainer.size), depth=seg, labels=seg)
     return torch.utils.data.default_collate([clips[i] for i in range(len(clips))])
 
 
 @torch.no_grad()
 def probe_losses(model, criterion, batch: dict[str, torch.Tensor], stage: str) -> dict[str, float]:
     """The raw loss terms (``parts``, not the learned weighting) of ``model`` on ``batch`` (module doc)."""
-    from vlocnetpp_core.trainer import forward_stage
+    from vlocnetpp_core.training.trainer import forward_stage
 
     probe = copy.deepcopy(model).train()
     for m in probe.modules():
@@ -56,15 +57,22 @@ def probe_losses(model, criterion, batch: dict[str, torch.Tensor], stage: str) -
 
 def train_probed(args: list[str]) -> tuple[dict[str, float], dict[str, float]]:
     """Run ``vlocnetpp train ARGS`` in-process; the probe losses of its network before and after the run."""
-    from vlocnetpp_core.trainer import Trainer
+    from vlocnetpp_core.training.trainer import Trainer
 
-    trainer = Trainer(build_parser("train").parse_args(args))
+    trainer = Trainer(train_config(args))
     batch = probe_batch(trainer)
-    before = probe_losses(trainer.model, trainer.criterion, batch, trainer.args.stage)
+    before = probe_losses(trainer.model, trainer.criterion, batch, trainer.config.stage)
     trainer.run()
-    return before, probe_losses(trainer.model, trainer.criterion, batch, trainer.args.stage)
+    return before, probe_losses(trainer.model, trainer.criterion, batch, trainer.config.stage)
 
 
 def ratios(before: dict[str, float], after: dict[str, float], keys) -> dict[str, float]:
     """``after / before`` of each key."""
     return {k: after[k] / before[k] for k in keys}
+
+
+def train_config(argv: list[str]) -> TrainConfig:
+    """The :class:`TrainConfig` of a ``vlocnetpp train`` command line (``argv`` starts with ``train``)."""
+    from vlocnetpp_core.training.train import train_config as of_args
+
+    return of_args(build_parser("train").parse_args(argv))

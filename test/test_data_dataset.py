@@ -127,7 +127,7 @@ def test_reproducible_and_picklable_for_workers(deeploc_index):
 def test_training_frames_cached_in_memory_give_the_clips_decoded_per_clip(deeploc_index, seg):
     """The frame cache changes speed, not data: at the network size (no zoom) every clip, its pixels, depth,
     labels, poses and intrinsics, equals the one decoded from the files, with the same augmentation draw."""
-    from vlocnetpp_core.train_data import SeededClips, training_clips
+    from vlocnetpp_core.training.train_data import SeededClips, training_clips
 
     size = (64, 48)
     transform = make_transform(True, size, scale=(1.0, 1.0))

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -296,3 +298,12 @@ def test_interrupt_while_writing_leaves_nothing(png_bag, tmp_path, monkeypatch):
     monkeypatch.setattr(extract_writer.DeepLocWriter, "image", image)
     assert main(["extract", str(png_bag), str(tmp_path / "ds"), "--tf", "map", "camera", "--no-progress"]) == 130
     assert len(calls) == 3 and list(tmp_path.iterdir()) == []
+
+
+def test_extract_loads_neither_the_localizer_nor_the_model():
+    """`vlocnetpp extract` reads bags and writes files: building its parser imports no localizer, checkpoint or network
+    (extrinsics names the localizer's result type for annotations only). Torch itself still comes with
+    vlocnetpp_core.geometry, whose one implementation of the pose algebra runs in torch for numpy inputs too."""
+    code = ("import sys; from vlocnetpp_core.cli import build_parser; build_parser('extract'); "
+            "print(sorted(m for m in ('vlocnetpp_core.localizer', 'vlocnetpp_core.checkpoint', 'vlocnetpp_core.model') if m in sys.modules))")
+    assert subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip() == "[]"

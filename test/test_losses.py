@@ -9,8 +9,8 @@ import torch
 from learning_probe import deterministic
 from model_fixtures import lite, random_clip_batch, single_thread
 
-from vlocnetpp_core.losses import VLocNetLoss, depth_loss, pose_errors, segmentation_loss, selection_score
 from vlocnetpp_core.model import StepOutput, VLocNetPP, trainable_parameters
+from vlocnetpp_core.training.losses import VLocNetLoss, depth_loss, pose_errors, segmentation_loss, selection_score
 
 IDENTITY_Q = [1.0, 0.0, 0.0, 0.0]
 

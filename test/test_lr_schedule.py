@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from vlocnetpp_core.lr_schedule import LearningRatePhase
+from vlocnetpp_core.training.lr_schedule import LearningRatePhase
 
 
 def test_a_constant_phase_keeps_its_rate():

@@ -12,7 +12,6 @@ from model_fixtures import (
 )
 
 from vlocnetpp_core.geometry import pose_to_matrix
-from vlocnetpp_core.losses import VLocNetLoss
 from vlocnetpp_core.model import (
     STAGES,
     STREAMS,
@@ -23,6 +22,7 @@ from vlocnetpp_core.model import (
     stream_of,
     trainable_parameters,
 )
+from vlocnetpp_core.training.losses import VLocNetLoss
 
 W, H = 96, 64
 

@@ -17,10 +17,12 @@ from vlocnetpp_core.cli import main as cli
 from vlocnetpp_core.data import open_dataset
 from vlocnetpp_core.errors import UserError
 from vlocnetpp_core.model import load_model_config
-from vlocnetpp_core.recipe import load_recipe, stage_commands, stage_weights
-from vlocnetpp_core.recipe_run import run_recipe
 from vlocnetpp_core.retrieval import ReferenceSet
+from vlocnetpp_core.training.config import TrainConfig
+from vlocnetpp_core.training.recipe import load_recipe, stage_commands, stage_configs, stage_weights
+from vlocnetpp_core.training.recipe_run import run_recipe
 
+VO = {"name": "vo", "stage": "stl-vo", "schedule": [{"steps": 2, "lr": 1e-3}]}
 WANDER = {"synth": {"seed": 0, "loops": 3, "test_loops": 0, "frames_per_loop": 8, "size": [64, 48], "lane_wander": 1.0}}
 
 
@@ -92,7 +94,7 @@ def test_recipe_runs_every_stage_exports_and_resumes(tmp_path, capsys):
     assert meta["training"]["data"].endswith("wander")  # the stage's own data
 
     recipe = load_recipe(path)
-    assert all(stage_commands(s, recipe, out) == [] for s in recipe.stages)  # finished: nothing left to run
+    assert all(stage_configs(s, recipe, out) == [] for s in recipe.stages)  # finished: nothing left to run
     assert cli(["train", "--recipe", str(path), "--out", str(out)]) == 0
     assert "start " not in capsys.readouterr().out  # no dataset rendered again, no stage ran again
     again = json.loads((out / "timings.json").read_text())
@@ -105,10 +107,12 @@ def test_recipe_resumes_an_unfinished_schedule(tmp_path):
     loc = recipe.stages[2]
     (out / "loc").mkdir(parents=True)
     (out / "loc" / "train_state.json").write_text(json.dumps({"step": 2}))
-    (command,) = stage_commands(loc, recipe, out)
-    assert command[command.index("--steps") + 1] == "4" and command[command.index("--lr") + 1] == "0.0001" and "--resume" in command
-    assert command[command.index("--lr-end") + 1] == "1e-06"
-    assert command.count("--init") == 1 and command[command.index("--init") + 1] == str(out / "vo" / "best.safetensors")
+    (config,) = stage_configs(loc, recipe, out)
+    assert (config.steps, config.lr, config.lr_end, config.resume, config.restart) == (4, 1e-4, 1e-6, True, False)
+    assert config.init == (str(out / "vo" / "best.safetensors"),) and config.data == str(out / "data" / "wander")
+    assert (config.s_q_init, config.batch_size, config.val_every) == (0.0, 2, 2)  # the stage's keys and the defaults'
+    (command,) = stage_commands(loc, recipe, out, sys.executable)  # the stage process gets its config as a file
+    assert command[-2:] == ["--train-config", str(out / "loc.2.json")] and TrainConfig.read(out / "loc.2.json") == config
 
 
 def test_a_restart_entry_restarts_once_then_resumes(tmp_path):
@@ -118,14 +122,13 @@ def test_a_restart_entry_restarts_once_then_resumes(tmp_path):
     stages[2]["schedule"][1]["restart"] = True
     path, out = _recipe(tmp_path, stages=stages), tmp_path / "run"
     loc = load_recipe(path).stages[2]
-    first, second = stage_commands(loc, load_recipe(path), out)
-    assert "--restart" not in first and "--resume" not in first and "--restart" in second and "--resume" not in second
+    first, second = stage_configs(loc, load_recipe(path), out)
+    assert (first.restart, first.resume, second.restart, second.resume) == (False, False, True, False)
     (out / "loc").mkdir(parents=True)
-    for step, flag in ((2, "--restart"), (3, "--resume")):
+    for step, restart in ((2, True), (3, False)):
         (out / "loc" / "train_state.json").write_text(json.dumps({"step": step}))
-        (command,) = stage_commands(loc, load_recipe(path), out)
-        other = "--resume" if flag == "--restart" else "--restart"
-        assert flag in command and other not in command
+        (config,) = stage_configs(loc, load_recipe(path), out)
+        assert (config.restart, config.resume) == (restart, not restart)
     stages[2]["schedule"][0]["restart"] = True
     with pytest.raises(UserError, match="the first schedule entry cannot restart"):
         load_recipe(_recipe(tmp_path, stages=stages))
@@ -137,8 +140,8 @@ def test_a_restart_entry_restarts_once_then_resumes(tmp_path):
 def test_a_stage_whose_weights_are_last_gives_its_last_checkpoint(tmp_path):
     recipe = load_recipe(_recipe(tmp_path))
     recipe.stages[0].weights = "last"  # vo: as `weights: last` in the file
-    (command, _) = stage_commands(recipe.stages[2], recipe, tmp_path / "run")
-    assert command[command.index("--init") + 1] == str(tmp_path / "run" / "vo" / "last.safetensors")
+    (config, _) = stage_configs(recipe.stages[2], recipe, tmp_path / "run")
+    assert config.init == (str(tmp_path / "run" / "vo" / "last.safetensors"),)
     stages = [{**s, "weights": "last"} if s["name"] == "vo" else s for s in yaml.safe_load(_recipe(tmp_path).read_text())["stages"]]
     assert load_recipe(_recipe(tmp_path, stages=stages)).stages[0].weights == "last"
 
@@ -157,19 +160,64 @@ def test_a_stage_whose_weights_are_last_gives_its_last_checkpoint(tmp_path):
     ({"datasets": {"campus": {"render": {"loops": 2}}, "wander": WANDER}}, "a dataset is {synth: {...}} (rendered) or {path: DIR}"),
     ({"export": {"stage": "mtl"}}, "export stage 'mtl'"),
     ({"export": {"stage": "loc", "reference": ["campus", "nope"]}}, "export reference 'nope' is not one of the recipe's datasets"),
+    # every key of every stage, of the defaults and of the export is known, and every value a train flag takes
+    ({"stages": [{**VO, "bach_size": 2}]}, "stage 0 (vo): unknown key 'bach_size'"),
+    ({"defaults": {"data": "campus", "workerz": 0}}, "defaults: unknown key 'workerz'"),
+    ({"stages": [{**VO, "batch_size": "eight"}]}, "stage 0 (vo): 'batch_size': --batch-size must be an integer, got 'eight'"),
+    ({"stages": [{**VO, "frame_strides": [0, 1]}]}, "stage 0 (vo): 'frame_strides': --frame-strides must be strides >= 1"),
+    ({"stages": [{**VO, "freeze": ["trunk", "odometri"]}]}, "stage 0 (vo): 'freeze': --freeze: odometri is not a part"),
+    ({"stages": [{**VO, "lr": 1e-3}]}, "stage 0 (vo): 'lr' is set by the recipe"),
+    ({"stages": [{**VO, "stage": "stl-seg", "config": "lite_pose"}]}, "stage 0 (vo): 'config': --config lite_pose: stage stl-seg"),
+    ({"stages": [{**VO}, {**VO}]}, "stage 1 (vo): the name 'vo' is also stage 0's"),
+    # an init cycle: a stage can only take weights from an earlier one
+    ({"stages": [{**VO, "init": ["loc"]}, {**VO, "name": "loc", "stage": "stl-loc", "init": ["vo"]}]},
+     "stage 0 (vo): 'loc' (init or continue) is not an earlier stage (a later stage or itself"),
+    ({"stages": [{**VO, "continue": "vo"}]}, "'vo' (init or continue) is not an earlier stage (a later stage or itself"),
+    ({"export": {"stage": "loc", "to": "m", "dtype": "bfloat16"}}, "export: 'dtype' must be one of float16, float32, got 'bfloat16'"),
+    ({"export": {"stage": "loc", "to": "m", "wieghts": "last"}}, "export: unknown key 'wieghts'"),
+    ({"export": {"stage": "loc", "to": "m", "weights": "final"}}, "export: 'weights' must be one of best, last"),
+    ({"export": {"stage": "loc", "to": "m", "calibration": {"pose": "loc", "odometry": "vo-x"}}}, "calibration stage 'vo-x'"),
 ])
 def test_recipe_mistakes_are_one_line_naming_the_file(tmp_path, capsys, change, message):
     path = _recipe(tmp_path, **change)
     assert cli(["train", "--recipe", str(path), "--out", str(tmp_path / "run")]) == 2
     err = capsys.readouterr().err
-    assert message in err and "recipe.yaml" in err and "Traceback" not in err
+    assert message in err and "recipe.yaml" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "run").exists()  # refused before anything ran
+
+
+def test_a_recipe_mistake_fails_in_under_a_second_before_torch_loads(tmp_path):
+    """The whole recipe is checked (every schedule entry a TrainConfig) without importing torch."""
+    from conftest import REPO
+
+    stages = yaml.safe_load(_recipe(tmp_path).read_text())["stages"]
+    stages[-1]["clip_len"] = 0  # the last stage's: every stage before it is checked too
+    path = _recipe(tmp_path, stages=stages)
+    code = ("import sys, time; from vlocnetpp_core.cli import main; t = time.monotonic(); "
+            f"rc = main(['train', '--recipe', {str(path)!r}, '--out', {str(tmp_path / 'run')!r}]); "
+            "print(rc, time.monotonic() - t, 'torch' in sys.modules)")
+    done = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=60)
+    rc, seconds, torch_loaded = done.stdout.split()
+    assert rc == "2" and "stage 3 (seg-more): 'clip_len': --clip-len must be >= 1, got 0" in done.stderr
+    assert float(seconds) < 1.0 and torch_loaded == "False"
+
+
+def test_export_weights_that_were_not_written_are_an_error_not_the_last(tmp_path):
+    """`weights: best` of a run that wrote no best (no validation scored) is named, not exported from `last` instead."""
+    from vlocnetpp_core.training.recipe_export import export_weights
+
+    out = tmp_path / "run"
+    (out / "loc").mkdir(parents=True)
+    (out / "loc" / "last.safetensors").write_bytes(b"")
+    with pytest.raises(UserError, match="export weights 'best': .*best.safetensors was not written by stage loc"):
+        export_weights(load_recipe(_recipe(tmp_path)), out)
 
 
 def test_a_failing_stage_names_its_log(tmp_path, capsys):
-    path = _recipe(tmp_path, stages=[{"name": "vo", "stage": "stl-vo", "schedule": [{"steps": 2, "lr": 1e-3}], "frame_strides": [0]}], export=None)
+    path = _recipe(tmp_path, stages=[{**VO, "freeze": ["trunk", "odometry"]}], export=None)  # nothing left to train
     assert cli(["train", "--recipe", str(path), "--out", str(tmp_path / "run")]) == 2
     err = capsys.readouterr().err
-    assert "vo failed: " in err and str(tmp_path / "run" / "vo.log") in err and "frame" in err  # the log's last line
+    assert "vo failed: " in err and str(tmp_path / "run" / "vo.log") in err and "is left to train" in err  # the log's last line
 
 
 def test_train_without_recipe_needs_config_data_and_stage(tmp_path, capsys):
@@ -179,7 +227,7 @@ def test_train_without_recipe_needs_config_data_and_stage(tmp_path, capsys):
 
 @pytest.mark.parametrize("name", ["shipped", "own_robot"])
 def test_the_shipped_recipes_give_valid_train_commands(name, tmp_path):
-    """Every stage of config/recipes/NAME.yaml is a `vlocnetpp train` command line that parses, with its inits."""
+    """Every stage of config/recipes/NAME.yaml is a `vlocnetpp train --train-config FILE` command, with its inits."""
     from conftest import REPO
 
     from vlocnetpp_core.cli import build_parser
@@ -187,13 +235,13 @@ def test_the_shipped_recipes_give_valid_train_commands(name, tmp_path):
     recipe = load_recipe(REPO / "config" / "recipes" / f"{name}.yaml")
     parser = build_parser("train")
     for stage in recipe.stages:
-        commands = stage_commands(stage, recipe, tmp_path)
+        commands = stage_commands(stage, recipe, tmp_path, sys.executable)
         assert len(commands) == len(stage.schedule)
         for command in commands:
-            args = parser.parse_args(command[command.index("train"):])
-            assert args.stage == stage.stage and args.config == (stage.config or recipe.config)
-            load_model_config(args.config)
-            assert [str(stage_weights(recipe, ref, tmp_path)) + ".safetensors" for ref in stage.init] == (args.init or [])
+            config = TrainConfig.read(parser.parse_args(command[command.index("train"):]).train_config)
+            assert config.stage == stage.stage and config.config == (stage.config or recipe.config)
+            load_model_config(config.config)
+            assert [str(stage_weights(recipe, ref, tmp_path)) + ".safetensors" for ref in stage.init] == list(config.init)
     assert recipe.export["stage"] == recipe.stages[-1].name
 
 

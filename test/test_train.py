@@ -16,7 +16,7 @@ import pytest
 import torch
 import yaml
 from conftest import REPO
-from learning_probe import deterministic, probe_batch, probe_losses, ratios, train_probed
+from learning_probe import deterministic, probe_batch, probe_losses, ratios, train_config, train_probed
 
 from vlocnetpp_core.checkpoint import load_checkpoint
 from vlocnetpp_core.cli import main as cli
@@ -57,7 +57,7 @@ def steps_of(log: list[dict]) -> list[dict]:
 
 def test_training_clips_pool_frame_strides(tiny):
     from vlocnetpp_core.data import open_dataset
-    from vlocnetpp_core.train_data import training_clips
+    from vlocnetpp_core.training.train_data import training_clips
 
     index = open_dataset(tiny[0], None, "train")  # 3 loops of 10 frames
     single, pooled = training_clips(index, 2, None), training_clips(index, 2, None, (1, 2))
@@ -136,8 +136,8 @@ def test_validation_counts_every_training_stride_and_calibrates_at_the_first(tin
     """``validate`` averages its losses over the clips of every stride (a constant odometry step must not score well at
     one spacing) and calibrates the covariances from the stride-1 clips only (the camera's own frame spacing)."""
     from vlocnetpp_core.data import ClipDataset, make_transform, open_dataset
-    from vlocnetpp_core.losses import VLocNetLoss
-    from vlocnetpp_core.trainer import validate
+    from vlocnetpp_core.training.losses import VLocNetLoss
+    from vlocnetpp_core.training.trainer import validate
 
     index = open_dataset(tiny[0], None, "test")  # 1 loop of 10 frames: 9 clips at stride 1 (2 batches), 8 at stride 2 (1)
     clips = [ClipDataset(index, 2, make_transform(False, (64, 48)), stride=s, depth=False, labels=False) for s in (1, 2)]
@@ -192,15 +192,14 @@ def test_mtl_from_stage_checkpoints_starts_at_their_losses(tiny, stage_training,
     # is its stage's (measured start / stage end 1 +- 1e-6), the segmentation 1.008-1.067 of stl-seg's (mtl warps with
     # its own odometry, stl-seg with the true motion); against a fresh mtl network x 0.12-0.26, q_vo 0.032-0.069 and
     # seg 0.048-0.055 of its (--seed 0-3 x --threads 1, 2; q_vo: x_vo went to 0.12-0.69, see STAGE_CHECKS).
-    from vlocnetpp_core.cli import build_parser
-    from vlocnetpp_core.trainer import Trainer
+    from vlocnetpp_core.training.trainer import Trainer
 
     data, config = tiny
     runs, probes = stage_training
     inits = [a for stage in ("stl-loc", "stl-vo", "stl-seg") for a in ("--init", str(runs[stage] / "last.safetensors"))]
 
     def start(out: str, *extra: str) -> dict[str, float]:
-        trainer = Trainer(build_parser("train").parse_args(train_args(data, config, tmp_path / out, "mtl", 8, "--threads", "1", *extra)))
+        trainer = Trainer(train_config(train_args(data, config, tmp_path / out, "mtl", 8, "--threads", "1", *extra)))
         assert trainer.model.semantic_fusion is not None
         return probe_losses(trainer.model, trainer.criterion, probe_batch(trainer), "mtl")
 
@@ -217,9 +216,9 @@ def test_mtl_semantic_fusion_starts_as_an_identity(tiny, stage_runs):
     # trained streams, it starts shifted past the ReLU with the shift taken off by the BatchNorms
     # that read it, so mtl training starts from exactly the stl-loc poses.
     from vlocnetpp_core.data import ClipDataset, make_transform, open_dataset
-    from vlocnetpp_core.losses import VLocNetLoss
     from vlocnetpp_core.model import VLocNetPP
-    from vlocnetpp_core.train_init import load_inits
+    from vlocnetpp_core.training.losses import VLocNetLoss
+    from vlocnetpp_core.training.train_init import load_inits
 
     data, config = tiny
     model = VLocNetPP(load_model_config(config))
@@ -350,9 +349,8 @@ def test_a_retrained_stream_of_another_head_shape_replaces_the_assembled_one(tin
 def test_a_cosine_run_anneals_each_step_and_a_resume_continues_its_curve(tiny, tmp_path):
     """--lr-end: the rate of every logged step follows the half cosine; resuming the finished run with the same
     flags keeps the saved phase, with more --steps it starts a new one at the resumed step."""
-    from vlocnetpp_core.cli import build_parser
-    from vlocnetpp_core.lr_schedule import LearningRatePhase
-    from vlocnetpp_core.trainer import Trainer
+    from vlocnetpp_core.training.lr_schedule import LearningRatePhase
+    from vlocnetpp_core.training.trainer import Trainer
 
     data, config = tiny
     out = tmp_path / "cosine"
@@ -361,8 +359,8 @@ def test_a_cosine_run_anneals_each_step_and_a_resume_continues_its_curve(tiny, t
     assert [r["lr"] for r in steps_of(log)] == pytest.approx([curve.at(s) for s in range(6)], rel=1e-9)
     base = ["train", "--config", str(config), "--data", str(data), "--stage", "stl-loc", "--out", str(out), "--batch-size", "2",
             "--clip-len", "2", "--workers", "0", "--no-progress", "--threads", "1", "--resume", "--lr", "1e-3", "--lr-end", "1e-5"]
-    assert Trainer(build_parser("train").parse_args([*base, "--steps", "6"])).phase == curve
-    assert Trainer(build_parser("train").parse_args([*base, "--steps", "10"])).phase == LearningRatePhase(6, 1e-3, 1e-5, 10)
+    assert Trainer(train_config([*base, "--steps", "6"])).phase == curve
+    assert Trainer(train_config([*base, "--steps", "10"])).phase == LearningRatePhase(6, 1e-3, 1e-5, 10)
 
 
 def test_restart_keeps_weights_and_step_with_a_fresh_optimiser_and_loss_weights(tiny, tmp_path):
@@ -372,8 +370,8 @@ def test_restart_keeps_weights_and_step_with_a_fresh_optimiser_and_loss_weights(
 
     from vlocnetpp_core.checkpoint import read_checkpoint_tensors
     from vlocnetpp_core.cli import build_parser
-    from vlocnetpp_core.lr_schedule import LearningRatePhase
-    from vlocnetpp_core.trainer import Trainer
+    from vlocnetpp_core.training.lr_schedule import LearningRatePhase
+    from vlocnetpp_core.training.trainer import Trainer
 
     data, config = tiny
     out = tmp_path / "warm"
@@ -383,9 +381,9 @@ def test_restart_keeps_weights_and_step_with_a_fresh_optimiser_and_loss_weights(
     base = ["train", "--config", str(config), "--data", str(data), "--stage", "stl-loc", "--out", str(out), "--batch-size", "2",
             "--clip-len", "2", "--workers", "0", "--no-progress", "--threads", "1", "--val-every", "4", "--steps", "4"]
     parse = build_parser("train").parse_args
-    resumed = Trainer(parse([*base, "--resume"]))
+    resumed = Trainer(train_config([*base, "--resume"]))
     assert resumed.optimizer.state and float(resumed.criterion.s_x.detach()) == float(saved["criterion.s_x"])
-    restarted = Trainer(parse([*base, "--restart", "--lr", "3e-4", "--lr-end", "1e-5"]))
+    restarted = Trainer(train_config([*base, "--restart", "--lr", "3e-4", "--lr-end", "1e-5"]))
     assert restarted.step == 3 and not restarted.optimizer.state
     assert (float(restarted.criterion.s_x.detach()), float(restarted.criterion.s_q.detach())) == (0.0, -3.0)
     weights, _ = read_checkpoint_tensors(out / "last.safetensors")
@@ -401,7 +399,7 @@ def test_restart_keeps_weights_and_step_with_a_fresh_optimiser_and_loss_weights(
 
 
 def _train_cmd(data: Path, config: Path, out: Path, steps: int) -> list[str]:
-    return [sys.executable, "-m", "vlocnetpp_core.train", "--config", str(config), "--data", str(data), "--stage", "mtl",
+    return [sys.executable, "-m", "vlocnetpp_core.training.train", "--config", str(config), "--data", str(data), "--stage", "mtl",
             "--out", str(out), "--steps", str(steps), "--batch-size", "2", "--clip-len", "2", "--workers", "0",
             "--no-progress", "--val-every", "3", "--seed", "3", "--threads", "1"]
 
@@ -449,7 +447,7 @@ def test_torchrun_two_processes_gloo(tiny, tmp_path):
     data, config = tiny
     out = tmp_path / "ddp"
     env = dict(os.environ, OMP_NUM_THREADS="1")
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2", "-m", "vlocnetpp_core.train",
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2", "-m", "vlocnetpp_core.training.train",
            "--config", str(config), "--data", str(data), "--stage", "stl-seg", "--out", str(out), "--steps", "3",
            "--batch-size", "2", "--clip-len", "2", "--workers", "0", "--no-progress", "--device", "cpu"]
     proc = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
@@ -529,15 +527,14 @@ def test_pose_only_trains_without_labels_or_depth(unlabelled, tmp_path, capsys):
 def test_only_the_odometry_stage_mirrors_its_training_clips(tiny, tmp_path):
     # stl-vo's clips are flipped left-right half the time (relative poses mirrored with them); the stages that learn
     # a global pose never see a mirrored world, and stl-seg stays as measured
-    from vlocnetpp_core.cli import build_parser
     from vlocnetpp_core.data.transforms import HorizontalFlip
-    from vlocnetpp_core.trainer import Trainer
+    from vlocnetpp_core.training.trainer import Trainer
 
     data, config = tiny
     flips = {}
     for stage in ("stl-loc", "stl-vo", "stl-seg", "mtl"):
         args = ["train", "--config", str(config), "--data", str(data), "--stage", stage, "--out", str(tmp_path / stage),
                 "--steps", "1", "--batch-size", "2", "--clip-len", "2", "--workers", "0", "--no-progress", "--threads", "1"]
-        trainer = Trainer(build_parser("train").parse_args(args))
+        trainer = Trainer(train_config(args))
         flips[stage] = [any(isinstance(t, HorizontalFlip) for t in clips.transform.transforms) for clips in trainer.train_clips.datasets]
     assert flips == {"stl-loc": [False], "stl-vo": [True], "stl-seg": [False], "mtl": [False]}

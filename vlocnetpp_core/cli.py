@@ -20,7 +20,7 @@ COMMANDS: dict[str, tuple[str, str, tuple[str, ...]]] = {
     "synth": ("vlocnetpp_core.synth.cli", "render a procedural DeepLoc-format campus dataset", ()),
     "data-info": ("vlocnetpp_core.data.check", "summarise and sanity-check a dataset (run before training)", ()),
     "model-info": ("vlocnetpp_core.model.info", "parameter counts per stream of a model config", ()),
-    "train": ("vlocnetpp_core.train", "train a stage (stl-loc, stl-vo, stl-seg, mtl)", ()),
+    "train": ("vlocnetpp_core.training.train", "train a stage (stl-loc, stl-vo, stl-seg, mtl)", ()),
     "evaluate": ("vlocnetpp_core.evaluate", "evaluate a checkpoint on a dataset with the paper's metrics", ()),
     "convert": ("vlocnetpp_core.bag.convert", "convert a DeepLoc / 7-Scenes dataset to a ROS 2 MCAP bag", ("convert-deeploc",)),
     "extract": ("vlocnetpp_core.bag.extract", "turn a robot's ROS 2 bag into a DeepLoc-layout dataset (images, poses, depth)", ()),

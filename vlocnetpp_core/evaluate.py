@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from vlocnetpp_core.classes import CLASS_NAMES
+from vlocnetpp_core.data.formats import FORMATS
 from vlocnetpp_core.errors import UserError
 from vlocnetpp_core.metrics import SequenceRecorder, SequenceResult, evaluate_sequences
 from vlocnetpp_core.report import (
@@ -42,7 +43,7 @@ from vlocnetpp_core.report import (
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--checkpoint", required=True, help="checkpoint (NAME.safetensors or NAME; the NAME.json sidecar next to it)")
     p.add_argument("--data", required=True, help="dataset folder (DeepLoc layout or 7-Scenes)")
-    p.add_argument("--format", choices=("deeploc", "7scenes"), default=None, help="dataset format (default: detected from the layout)")
+    p.add_argument("--format", choices=FORMATS, default=None, help="dataset format (default: detected from the layout)")
     p.add_argument("--split", default="test", help="split to evaluate (default: test)")
     p.add_argument("--intrinsics", default=None, metavar="FX,FY,CX,CY", help="camera intrinsics at the dataset image size (default: the reader's)")
     add_report_arguments(p, "retrieval baseline reference: a dataset folder (its training images) or a .npz from ReferenceSet.save "

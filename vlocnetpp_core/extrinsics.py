@@ -33,12 +33,15 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import cached_property
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from vlocnetpp_core import geometry
 from vlocnetpp_core.errors import UserError
-from vlocnetpp_core.localizer import LocalizerResult
+
+if TYPE_CHECKING:  # an annotation only: extract (which reads extrinsics) does not load the localizer
+    from vlocnetpp_core.localizer import LocalizerResult
 
 QUAT_NORM_TOLERANCE = 1e-3  # |‖q‖ - 1| accepted in the parameter (then normalised): 3-decimal quaternions pass
 IDENTITY_VALUES = (0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)  # x, y, z, qw, qx, qy, qz

@@ -59,6 +59,7 @@ from vlocnetpp_core.bag.topics import (
     TF_STATIC_TOPIC,
     TF_TOPIC,
 )
+from vlocnetpp_core.data.formats import FORMATS
 from vlocnetpp_core.data.sample import DatasetIndex, Frame, sequence_stamps
 from vlocnetpp_core.errors import DataError, UserError
 from vlocnetpp_core.interrupts import sigterm_as_interrupt
@@ -206,7 +207,7 @@ def _write_tf_static(writer: BagWriter, ns: int, robot_frame: str, camera_extrin
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("dataset", metavar="DIR", help="dataset folder (DeepLoc layout or a 7-Scenes scene)")
     p.add_argument("out", metavar="OUT.mcap", help="output bag: one MCAP file (ROS 2 Jazzy types)")
-    p.add_argument("--format", choices=("deeploc", "7scenes"), default=None, help="dataset format (default: detected from the layout)")
+    p.add_argument("--format", choices=FORMATS, default=None, help="dataset format (default: detected from the layout)")
     p.add_argument("--split", choices=("train", "test", "all"), default="test", help="split to convert; 'all' = train then test (default: test)")
     p.add_argument("--compress", nargs="?", const="png", choices=("png", "jpeg"), default=None,
                    help="write /camera/image_raw/compressed (PNG, or JPEG quality 95) instead of raw rgb8 /camera/image_raw")

@@ -214,10 +214,10 @@ def train_step(config: str, device: str, repetitions: int, warmup: int, batch: i
     """One ``stl-loc`` training step of ``config`` (the recipe's longest stage: trunk frozen, ``batch`` clips of
     ``clip_len`` random frames at the input size, forward, loss and backward) with the network channels-last,
     as built, and the same network in NCHW, interleaved: ``train_step_nhwc`` / ``train_step_nchw``."""
-    from vlocnetpp_core.losses import VLocNetLoss
     from vlocnetpp_core.model import VLocNetPP, load_model_config, train_only
     from vlocnetpp_core.model.stages import stage_tasks
-    from vlocnetpp_core.trainer import forward_stage
+    from vlocnetpp_core.training.losses import VLocNetLoss
+    from vlocnetpp_core.training.trainer import forward_stage
 
     cfg = load_model_config(config)
     (w, h), gen = cfg.input_size, torch.Generator().manual_seed(0)

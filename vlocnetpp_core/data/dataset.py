@@ -9,11 +9,10 @@ import torch
 
 from vlocnetpp_core import geometry
 from vlocnetpp_core.classes import IGNORE_INDEX
+from vlocnetpp_core.data.formats import FORMATS
 from vlocnetpp_core.data.sample import DatasetIndex, Frame, mirror_pose
 from vlocnetpp_core.errors import DataError, UserError
 from vlocnetpp_core.intrinsics import Intrinsics
-
-FORMATS = ("deeploc", "7scenes")
 
 
 def detect_format(path: str | Path) -> str:

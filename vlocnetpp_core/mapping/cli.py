@@ -14,6 +14,7 @@ import os
 import time
 from pathlib import Path
 
+from vlocnetpp_core.data.formats import FORMATS
 from vlocnetpp_core.errors import UserError
 from vlocnetpp_core.mapping.build import ANGLE_DEG, SPACING_M
 from vlocnetpp_core.outputs import check_writable, refuse_existing
@@ -28,7 +29,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     what = b.add_mutually_exclusive_group(required=True)
     what.add_argument("--data", action="append", metavar="DIR", help="dataset folder (DeepLoc layout or 7-Scenes); repeat for several")
     what.add_argument("--scene", metavar="NAME", help="synthetic scene (as 'vlocnetpp synth --scene'): render only the keyframes of its train visits")
-    b.add_argument("--format", choices=("deeploc", "7scenes"), default=None, help="dataset format (default: detected from the layout)")
+    b.add_argument("--format", choices=FORMATS, default=None, help="dataset format (default: detected from the layout)")
     b.add_argument("--split", default="train", help="split of --data to build the map of (default: train, the model's training images)")
     b.add_argument("--seed", type=int, default=0, help="with --scene: the visits' seed, as 'vlocnetpp synth --seed' (default 0)")
     b.add_argument("--loops", type=int, default=4, help="with --scene: train visits, as 'vlocnetpp synth --loops' (default 4)")

@@ -1,6 +1,6 @@
 """Local features of the map and of the query images: SIFT keypoints with uint8 descriptors, ratio-test matching.
 
-Why SIFT (measured on the synthetic campus, 320x180 images, docs/results.md 2026-12-20): against a map of
+Why SIFT (measured on the synthetic campus, 320x180 images, docs/results.md, refinement): against a map of
 every 8th training frame, with keyframes chosen near a pose prior, SIFT put 97 % of the frames of a fresh
 visit within 0.1 m / 1 deg (median 9 mm) and ORB (1500 features, FAST threshold 5) 88 % (median 42 mm, with
 3x the features to match); SIFT costs about 15-25 ms an image on one core against ORB's 2-6 ms. OpenCV's

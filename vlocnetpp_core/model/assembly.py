@@ -2,11 +2,12 @@
 (which tensors to load, what stays frozen, whether the Res4c fusion is built) and ``evaluate``
 (which tasks a checkpoint was trained for) both read.
 
-:data:`INIT_RULES` says what a checkpoint of stage ``source`` gives a run of stage ``run``:
+A run's :class:`~vlocnetpp_core.model.stages.StageSpec` (``init_rules``, ``multi_init``) says which rule a
+checkpoint of stage ``source`` follows:
 
 * ``"whole"`` (the default): every tensor whose name exists in the run's network;
 * ``"streams"`` (``mtl`` from several checkpoints): each stream from the checkpoint of the stage that
-  trains it (:data:`STREAM_SOURCE`); an ``mtl`` checkpoint among them (an assembled or multitask network)
+  trains it (:data:`STREAM_SOURCE`, the single-task stage whose ``streams`` hold it); an ``mtl`` checkpoint among them (an assembled or multitask network)
   gives every stream, and a later single-task one replaces its own (e.g. the shipped model with a
   retrained odometry stream: ``--init models/vlocnetpp_lite.safetensors --init runs/stl-vo/best.safetensors``);
 * ``"trunk"`` (one pose stage on the other: ``stl-loc`` on ``stl-vo``, ``stl-vo`` on ``stl-loc``): only
@@ -28,22 +29,19 @@ from collections.abc import Iterable
 import torch
 
 from vlocnetpp_core.model.config import TASKS
-from vlocnetpp_core.model.stages import STAGE_TASKS, stream_of
+from vlocnetpp_core.model.stages import STAGE_SPECS, stage_spec, stream_of
 
-INIT_RULES: dict[tuple[str, str], str] = {
-    ("stl-loc", "stl-vo"): "trunk",
-    ("stl-vo", "stl-loc"): "trunk",
-    ("stl-loc", "stl-seg"): "encoder",
-}
-STREAM_SOURCE = {"global": "stl-loc", "odometry": "stl-vo", "semantic": "stl-seg", "depth": "stl-seg"}  # the fusion: none
+# each stream from the single-task stage that trains it (the fusion: none)
+STREAM_SOURCE = {stream: spec.name for spec in STAGE_SPECS.values() if len(spec.tasks) == 1 for stream in spec.streams}
 TASK_CARRYING_RULES = ("whole", "streams")
 
 
 def init_rule(run: str, source: str | None, n_inits: int) -> str:
-    """The :data:`INIT_RULES` entry for a checkpoint of stage ``source`` given to a run of stage ``run``."""
-    if run == "mtl" and n_inits > 1:
-        return "streams"
-    return INIT_RULES.get((run, source or ""), "whole")
+    """The rule for a checkpoint of stage ``source`` given to a run of stage ``run`` with ``n_inits`` checkpoints."""
+    spec = stage_spec(run)
+    if n_inits > 1 and spec.multi_init != "whole":
+        return spec.multi_init
+    return spec.init_rules.get(source or "", "whole")
 
 
 def init_tensors(rule: str, source: str | None, tensors: dict[str, torch.Tensor], own: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
@@ -59,16 +57,16 @@ def init_tensors(rule: str, source: str | None, tensors: dict[str, torch.Tensor]
 
 def frozen_trunk(run: str, sources: list[str | None]) -> bool:
     """Whether a run keeps the shared trunk frozen: one pose stream trained on top of the other's trunk
-    (``stl-vo`` initialised from anything, ``stl-loc`` on an ``stl-vo`` trunk)."""
-    if run == "stl-vo":
-        return bool(sources)
+    (``stl-vo`` initialised from anything: ``init_freezes_trunk``; ``stl-loc`` on an ``stl-vo`` trunk: a ``"trunk"`` rule)."""
+    if stage_spec(run).init_freezes_trunk and sources:
+        return True
     return any(init_rule(run, s, len(sources)) == "trunk" for s in sources)
 
 
 def builds_semantic_fusion(stage: str, steps: int | None) -> bool:
-    """Only ``mtl`` training learns the Res4c AWF: every other run (and ``mtl --steps 0``, which assembles
-    the stages) is built without it (a plain untrained AWF ends in a ReLU that clips the global stream)."""
-    return stage == "mtl" and steps != 0
+    """Only a stage that trains the ``fusion`` stream (``mtl``) learns the Res4c AWF: every other run (and ``mtl --steps 0``,
+    which assembles the stages) is built without it (a plain untrained AWF ends in a ReLU that clips the global stream)."""
+    return "fusion" in stage_spec(stage).streams and steps != 0
 
 
 def trained_tasks(training: dict, model_tasks: Iterable[str] = TASKS) -> set[str] | None:
@@ -80,13 +78,13 @@ def trained_tasks(training: dict, model_tasks: Iterable[str] = TASKS) -> set[str
     stage = training.get("stage")
     if stage == "init":
         return set()
-    if stage not in STAGE_TASKS:
+    if stage not in STAGE_SPECS:
         return None
-    tasks = set(STAGE_TASKS[stage]) if training.get("step", 1) > 0 else set()
+    tasks = set(STAGE_SPECS[stage].tasks) if training.get("step", 1) > 0 else set()
     inits = training.get("init") or []
     for source in inits:
-        if init_rule(stage, source.get("stage"), len(inits)) in TASK_CARRYING_RULES:
-            tasks |= set(STAGE_TASKS.get(source.get("stage"), ()))
+        if source.get("stage") in STAGE_SPECS and init_rule(stage, source.get("stage"), len(inits)) in TASK_CARRYING_RULES:
+            tasks |= set(STAGE_SPECS[source["stage"]].tasks)
     return tasks & set(model_tasks)
 
 

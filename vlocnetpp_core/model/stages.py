@@ -1,4 +1,4 @@
-"""Which stream each weight belongs to, and which weights each training stage trains.
+"""Which stream each weight belongs to, and the rules of each training stage: :data:`STAGE_SPECS`, one row per stage.
 
 Streams: ``global`` (the shared trunk stem..Res3 and the global Res4, Res5, temporal Res5a AWF
 and pose head), ``odometry`` (Siamese Res4, Res5, pose head), ``semantic`` (AdapNet encoder,
@@ -9,22 +9,65 @@ Stages (paper Sec. IV): ``stl-loc`` trains ``global``; ``stl-vo`` trains ``odome
 shared trunk (its I_t stream up to Res3 *is* the trunk); ``stl-seg`` trains ``semantic`` and
 ``depth``; ``mtl`` trains everything. On a pose-only network (config ``semantic_stream: false``:
 no ``semantic``, ``depth`` or ``fusion`` weights) ``mtl`` trains ``loc`` + ``vo`` and ``stl-seg``
-is refused (:func:`stage_tasks`).
+is refused (:func:`stage_tasks`). The trainer, :mod:`~vlocnetpp_core.model.assembly` (``--init``), the
+losses, ``evaluate`` and docs/training.md read the table; a new stage is one row. This module imports
+no torch at run time, so that a recipe is checked before torch loads.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Iterator
-
-from torch import nn
+from collections.abc import Iterable, Iterator, Mapping
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 from vlocnetpp_core.model.config import TASKS
 
+if TYPE_CHECKING:
+    from torch import nn
+
 STREAMS = ("global", "odometry", "semantic", "depth", "fusion")
-STAGES = ("stl-loc", "stl-vo", "stl-seg", "mtl")
-# Tasks (``VLocNetPP.step(tasks=...)`` and ``VLocNetLoss``) a stage runs.
-STAGE_TASKS: dict[str, tuple[str, ...]] = {"stl-loc": ("loc",), "stl-vo": ("vo",), "stl-seg": ("seg",), "mtl": ("loc", "vo", "seg")}
 TASK_NAMES = {"loc": "global pose", "vo": "odometry", "seg": "segmentation"}
+
+
+@dataclass(frozen=True)
+class StageSpec:
+    """The rules of one training stage.
+
+    ``tasks``: what it runs and trains (``VLocNetPP.step(tasks=...)``, ``VLocNetLoss``); ``streams``: the streams
+    whose weights it trains (:func:`stream_of`); ``trains_trunk``: whether that includes the shared trunk;
+    ``init_rules``: what an ``--init`` checkpoint of another stage gives it (source stage -> rule of
+    :mod:`~vlocnetpp_core.model.assembly`; any other source: ``"whole"``), ``multi_init``: the rule for each of
+    several ``--init``; ``init_freezes_trunk``: any ``--init`` keeps the trunk frozen (a ``"trunk"`` rule always
+    does); ``lr``: the default learning rate (paper); ``crop_scale``: the default geometric augmentation (1: none,
+    as a crop falsifies pose targets); ``mirrors``: half its training clips are mirrored left-right (exact for
+    relative poses, a mirrored world for global ones: only a stage that trains odometry and no global pose);
+    ``warps_with_ground_truth``: the semantic stream warps with the true relative pose (its odometry is untrained).
+    """
+
+    name: str
+    tasks: tuple[str, ...]
+    streams: frozenset[str]
+    trains_trunk: bool
+    lr: float
+    init_rules: Mapping[str, str] = field(default_factory=dict)
+    multi_init: str = "whole"
+    init_freezes_trunk: bool = False
+    crop_scale: float = 1.0
+    mirrors: bool = False
+    warps_with_ground_truth: bool = False
+
+
+STAGE_SPECS: dict[str, StageSpec] = {spec.name: spec for spec in (
+    StageSpec("stl-loc", ("loc",), frozenset({"global"}), trains_trunk=True, lr=1e-3,
+              init_rules={"stl-vo": "trunk", "stl-seg": "encoder"}),
+    StageSpec("stl-vo", ("vo",), frozenset({"odometry"}), trains_trunk=True, lr=1e-3,
+              init_rules={"stl-loc": "trunk"}, init_freezes_trunk=True, mirrors=True),
+    StageSpec("stl-seg", ("seg",), frozenset({"semantic", "depth"}), trains_trunk=False, lr=1e-3,
+              crop_scale=1.15, warps_with_ground_truth=True),
+    StageSpec("mtl", ("loc", "vo", "seg"), frozenset(STREAMS), trains_trunk=True, lr=1e-4, multi_init="streams"),
+)}
+STAGES = tuple(STAGE_SPECS)
+STAGE_TASKS: dict[str, tuple[str, ...]] = {name: spec.tasks for name, spec in STAGE_SPECS.items()}
 
 _PREFIX_STREAM = {
     "trunk": "global",
@@ -33,12 +76,6 @@ _PREFIX_STREAM = {
     "semantic": "semantic",
     "depth_head": "depth",
     "semantic_fusion": "fusion",
-}
-_STAGE_STREAMS = {
-    "stl-loc": {"global"},
-    "stl-vo": {"odometry"},
-    "stl-seg": {"semantic", "depth"},
-    "mtl": set(STREAMS),
 }
 
 
@@ -58,18 +95,19 @@ def stream_of(name: str) -> str:
     return _PREFIX_STREAM[part_of(name)]
 
 
-def _check_stage(stage: str) -> None:
-    if stage not in STAGES:
+def stage_spec(stage: str) -> StageSpec:
+    """The :data:`STAGE_SPECS` row of ``stage``; ``ValueError`` for an unknown stage."""
+    if stage not in STAGE_SPECS:
         raise ValueError(f"unknown stage {stage!r}; expected one of {STAGES}")
+    return STAGE_SPECS[stage]
 
 
 def stage_tasks(stage: str, model_tasks: Iterable[str] = TASKS) -> tuple[str, ...]:
     """The tasks a run of ``stage`` trains on a network that has ``model_tasks`` (``ModelConfig.tasks``):
     :data:`STAGE_TASKS` of the stage, less those the network lacks (``mtl`` on a pose-only network:
     ``loc``, ``vo``). ``ValueError`` when none is left (``stl-seg`` without the semantic stream)."""
-    _check_stage(stage)
     have = set(model_tasks)
-    tasks = tuple(t for t in STAGE_TASKS[stage] if t in have)
+    tasks = tuple(t for t in stage_spec(stage).tasks if t in have)
     if not tasks:
         raise ValueError(f"stage {stage} trains the {' and '.join(TASK_NAMES[t] for t in STAGE_TASKS[stage])} stream, which this "
                          f"model config does not have (semantic_stream: false, a pose-only network); it trains with "
@@ -77,28 +115,17 @@ def stage_tasks(stage: str, model_tasks: Iterable[str] = TASKS) -> tuple[str, ..
     return tasks
 
 
-def mirrors_clips(tasks: Iterable[str]) -> bool:
-    """Whether a run's training clips are mirrored left-right half the time (``transforms.HorizontalFlip``): a run
-    that trains odometry and no global pose (``stl-vo``). A mirrored clip's relative poses are exact, mirrored with
-    its frames (yaw and roll change sign), so the stream sees every turn both ways and a constant turn gains
-    nothing: one of two flattened-head runs without it stuck at a constant rotation, no mirrored run did
-    (docs/results.md, 2026-12-16). Its absolute poses lie in a mirrored world that the global stream must not
-    learn. ``stl-seg`` is left as measured, unmirrored."""
-    tasks = set(tasks)
-    return "vo" in tasks and "loc" not in tasks
-
-
 def is_trained_in(name: str, stage: str) -> bool:
-    """Whether ``stage`` trains the parameter ``name``."""
-    _check_stage(stage)
-    if stage == "stl-vo" and name.removeprefix("module.").startswith("trunk."):
-        return True
-    return stream_of(name) in _STAGE_STREAMS[stage]
+    """Whether ``stage`` trains the parameter ``name``: the trunk by its ``trains_trunk``, the rest by its ``streams``."""
+    spec = stage_spec(stage)
+    if part_of(name) == "trunk":
+        return spec.trains_trunk
+    return stream_of(name) in spec.streams
 
 
 def trainable_parameters(model: nn.Module, stage: str, frozen: Iterable[str] = ()) -> Iterator[nn.Parameter]:
     """The parameters of ``model`` that ``stage`` trains (see the module docstring), less those of the ``frozen`` parts (:data:`PARTS`)."""
-    _check_stage(stage)
+    stage_spec(stage)
     frozen = set(frozen)
     return (p for name, p in model.named_parameters() if is_trained_in(name, stage) and part_of(name) not in frozen)
 

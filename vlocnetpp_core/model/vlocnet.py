@@ -204,9 +204,9 @@ class VLocNetPP(nn.Module):
         """Siamese Res4 of this frame (cached for the next), Res5 on ``prev ++ current``, relative pose.
 
         A first frame (no ``prev.odo_res4``) pairs the frame with itself in eval mode (streaming, ONNX). In training it
-        gives the identity without running Res5: no loss reads it, and the self-pair's zero-motion statistics in the
-        running averages of Res5's and the head's BatchNorms (half of them with clips of 2) biased every evaluation
-        (steps 1.6x too long; docs/results.md, 2026-12-15)."""
+        gives the identity without running Res5: no loss reads it, and the self-pair's zero-motion statistics would
+        enter the running averages of Res5's and the head's BatchNorms (half of them with clips of 2) and bias every
+        evaluation."""
         odo_res4 = self.odometry.res4(res3)
         out.taps["odo_res4"] = new.odo_res4 = odo_res4
         if prev.odo_res4 is None and self.training:

@@ -12,18 +12,20 @@ Every step unrolls clips of ``--clip-len`` frames through ``model.forward_clip``
 previous-frame features the network fuses come from its own previous step (never from ground
 truth). Run folder (``--out``): ``last.safetensors/.json`` and ``best.safetensors/.json``
 checkpoints (inference sidecar with calibration; ``best`` has the lowest validation
-:func:`~vlocnetpp_core.losses.selection_score`: the raw pose, odometry and segmentation errors
+:func:`~vlocnetpp_core.training.losses.selection_score`: the raw pose, odometry and segmentation errors
 relative to the first validation, not the loss with its moving learned weights), ``train_state.*`` (optimiser, loss weights,
 RNG, step) for ``--resume``, ``log.jsonl`` (every loss and the learning rate per step, and each
 validation), all written atomically.
 
-Distributed: ``torchrun --nproc-per-node N -m vlocnetpp_core.train --config ... --data ...``
+Distributed: ``torchrun --nproc-per-node N -m vlocnetpp_core.training.train --config ... --data ...``
 (gloo on CPU, nccl on GPU). Each rank takes a disjoint share of the clips of every epoch (a
 clip never straddles ranks); rank 0 alone validates and writes files.
 
-This module is the command line; :class:`vlocnetpp_core.trainer.Trainer` runs one stage,
-``train_data`` holds the clips and their order, ``model/assembly.py`` the rules of ``--init``,
-and ``recipe`` (``--recipe``) runs a whole schedule.
+This module is the command line, and the only code that sees the parsed ``argparse.Namespace``: it becomes a
+:class:`~vlocnetpp_core.training.config.TrainConfig` (``--train-config FILE`` reads one from a JSON file, as a
+recipe's stage processes do), which :class:`~vlocnetpp_core.training.trainer.Trainer` runs; ``train_data`` holds
+the clips and their order, ``model/stages.py`` the rules of each stage (``STAGE_SPECS``), ``model/assembly.py``
+those of ``--init``, and ``recipe`` (``--recipe``) runs a whole schedule.
 """
 
 from __future__ import annotations
@@ -32,22 +34,23 @@ import argparse
 import os
 import sys
 
-import torch
-
+from vlocnetpp_core.data.formats import FORMATS
 from vlocnetpp_core.errors import UserError
-from vlocnetpp_core.losses import S_Q_INIT
-from vlocnetpp_core.model.stages import PARTS, STAGES
+from vlocnetpp_core.model.stages import PARTS, STAGE_SPECS, STAGES
 from vlocnetpp_core.outputs import check_run_dir
+from vlocnetpp_core.training.config import S_Q_INIT, TrainConfig
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--recipe", metavar="FILE", help="run a whole declarative schedule (datasets, stages, export; e.g. "
                    "config/recipes/shipped.yaml) into --out, resumably; the other flags then come from the file (docs/training.md)")
+    p.add_argument("--train-config", metavar="FILE", help="run the TrainConfig in this JSON file (every other flag, --out "
+                   "included, comes from it; what a recipe writes for each of its stage runs: OUT/NAME.K.json)")
     p.add_argument("--config", help="model config: 'paper', 'lite' or a YAML file (required without --recipe)")
     p.add_argument("--data", help="dataset folder (DeepLoc layout or 7-Scenes scene) (required without --recipe)")
-    p.add_argument("--format", choices=("deeploc", "7scenes"), default=None, help="dataset format (default: detected)")
+    p.add_argument("--format", choices=FORMATS, default=None, help="dataset format (default: detected)")
     p.add_argument("--stage", choices=STAGES, help="training stage (paper's staged schedule) (required without --recipe)")
-    p.add_argument("--out", required=True, help="run folder for checkpoints and logs")
+    p.add_argument("--out", help="run folder for checkpoints and logs (required without --train-config)")
     length = p.add_mutually_exclusive_group()
     length.add_argument("--steps", type=int, help="optimiser steps to train (total, including resumed ones)")
     length.add_argument("--epochs", type=float, help="epochs over the training clips (default 30)")
@@ -70,33 +73,38 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="training clips at each of these frame strides (1: consecutive frames; 2: every other frame, "
                         "i.e. twice the motion between the frames the network sees), pooled (default 1)")
     p.add_argument("--lr", type=float,
-                   help="learning rate (default: 1e-3 single-task, 1e-4 mtl, as in the paper; with --resume: the run's, "
+                   help=f"learning rate (default: the stage's, as in the paper: {_per_stage('lr')}; with --resume: the run's, "
                         "or this one from the resumed step on)")
     p.add_argument("--lr-end", type=float, default=None, metavar="R",
                    help="anneal the rate along a half cosine from --lr to R at --steps (default: constant); resumed with the "
                         "same --lr, --lr-end and --steps it continues the same curve")
     p.add_argument("--crop-scale", type=float, default=None, metavar="S",
                    help="geometric augmentation: zoom by a random factor in [1, S], then crop the input size at a random place "
-                        "(default: 1.15 for stl-seg; 1, none, for the stages with pose losses, whose targets a crop would falsify: "
-                        "a crop shifted by d pixels shows the view of a camera turned by about d/f radians)")
+                        f"(default: the stage's, {_per_stage('crop_scale')}; 1, none, for the stages with pose losses, whose targets "
+                        "a crop would falsify: a crop shifted by d pixels shows the view of a camera turned by about d/f radians)")
     p.add_argument("--s-q-init", type=float, default=S_Q_INIT,
                    help="initial rotation loss weight s_q (paper: -3, i.e. rotation weighted e^3 = 20x at the start); "
                         "0 lets a global stream trained from scratch leave the predict-the-mean plateau (docs/training.md)")
     p.add_argument("--intrinsics", help="fx,fy,cx,cy of the dataset images (default: the reader's)")
     p.add_argument("--val-data", help="validation dataset folder (default: hold out the last training sequence)")
     p.add_argument("--val-split", default="train", help="split of --val-data to validate on (default train)")
-    p.add_argument("--val-every", type=int, default=500, help="validate (and write best/last) every N steps (default 500)")
+    p.add_argument("--val-every", type=int, default=500, help="validate (and write best/last) every N steps and at the last (default 500; 0: at the last only)")
     p.add_argument("--save-every-s", type=float, default=300.0, help="write last checkpoint + resumable state at most this often (s)")
     p.add_argument("--workers", type=int, default=2, help="data loading worker processes (default 2)")
     p.add_argument("--threads", type=int, default=os.cpu_count() or 1,
                    help="CPU threads for the network (default: all %(default)s cores; 0: all but one)")
-    p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu", help="cpu or cuda (default: cuda if present)")
+    p.add_argument("--device", help="cpu or cuda (default: cuda if present)")
     p.add_argument("--bf16", action="store_true",
                    help="train with bfloat16 autocast: convolutions and matrix products in bfloat16, the pose heads, warping, "
                         "losses and the weights in float32 (about 1.8x faster on CPUs with AMX or AVX-512 BF16, and on GPUs; "
                         "slower on CPUs without); validation and the saved weights stay float32")
     p.add_argument("--seed", type=int, default=0, help="random seed (data order, augmentation, init)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar (log lines only)")
+
+
+def _per_stage(key: str) -> str:
+    """A default of every stage's :class:`StageSpec` for the help (``1e-3 stl-loc, ...``)."""
+    return ", ".join(f"{getattr(spec, key):g} {name}" for name, spec in STAGE_SPECS.items())
 
 
 def _strides(text: str) -> tuple[int, ...]:
@@ -118,29 +126,34 @@ def _parts(text: str) -> tuple[str, ...]:
 
 
 def run(args: argparse.Namespace) -> int:
-    check_run_dir(args.out)  # a file there or a folder that cannot be written: one line, before anything is read
-    if args.recipe:
-        from vlocnetpp_core.recipe_run import run_recipe
+    if args.train_config:
+        config = TrainConfig.read(args.train_config)
+    else:
+        if args.out is None:
+            raise UserError("--out required (or --train-config FILE)")
+        check_run_dir(args.out)  # a file there or a folder that cannot be written: one line, before anything is read
+        if args.recipe:
+            from vlocnetpp_core.training.recipe_run import run_recipe
 
-        return run_recipe(args.recipe, args.out)
-    missing = [f"--{k}" for k in ("config", "data", "stage") if getattr(args, k) is None]
-    if missing:
-        raise UserError(f"{', '.join(missing)} required (or --recipe FILE)")
-    if args.epochs is not None and args.epochs <= 0:
-        raise UserError(f"--epochs must be > 0, got {args.epochs:g} (--steps 0 assembles mtl from its stages without training)")
-    from vlocnetpp_core.model import load_model_config, stage_tasks
-    from vlocnetpp_core.trainer import Trainer
+            return run_recipe(args.recipe, args.out)
+        config = train_config(args)
+    check_run_dir(config.out)
+    from vlocnetpp_core.training.trainer import Trainer
 
-    try:
-        stage_tasks(args.stage, load_model_config(args.config).tasks)  # before the run folder is made
-    except ValueError as err:
-        raise UserError(f"--config {args.config}: {err}") from None
-    Trainer(args).run()
+    Trainer(config).run()
     return 0
 
 
+def train_config(args: argparse.Namespace) -> TrainConfig:
+    """The :class:`TrainConfig` of the parsed flags (the command line's only conversion); ``UserError`` on a bad value."""
+    missing = [f"--{k}" for k in ("config", "data", "stage") if getattr(args, k) is None]
+    if missing:
+        raise UserError(f"{', '.join(missing)} required (or --recipe FILE)")
+    return TrainConfig(**{key: getattr(args, key) for key in TrainConfig.keys()})
+
+
 def main() -> int:
-    parser = argparse.ArgumentParser(prog="python -m vlocnetpp_core.train", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m vlocnetpp_core.training.train", description=__doc__.splitlines()[0])
     add_arguments(parser)
     try:
         return run(parser.parse_args())

@@ -10,7 +10,7 @@ Per clip of ``T`` frames (``outputs[t]`` are :class:`~vlocnetpp_core.model.StepO
   (``s_x_rel``, ``s_q_rel``): a learned weight tends to ``1 / L``, so the consistency errors, small on
   a camera that moves 0.5 m and a degree per frame, got weights 20x those of the global errors and
   training traded the global pose for smooth predictions until the stream predicted the mean of
-  the campus (measured: docs/results.md, 2026-12-02). Here the consistency errors, derived from the
+  the campus (docs/results.md has the runs). Here the consistency errors, derived from the
   global predictions and in their units, share their weights.
   With position anchors (config ``global_pose_anchors``, a departure from the paper) ``loc`` adds
   the cross-entropy of the anchor scores against each frame's nearest anchor (weight 1, part
@@ -45,9 +45,9 @@ from vlocnetpp_core.classes import IGNORE_INDEX
 from vlocnetpp_core.geometry import relative_pose
 from vlocnetpp_core.model.stages import STAGE_TASKS
 from vlocnetpp_core.model.vlocnet import TASKS, StepOutput
+from vlocnetpp_core.training.config import S_Q_INIT
 
 S_X_INIT = 0.0
-S_Q_INIT = -3.0
 
 
 def pose_errors(xyz: torch.Tensor, quat: torch.Tensor, t: torch.Tensor, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -1,5 +1,5 @@
 """Running a recipe (``vlocnetpp train --recipe FILE --out DIR``): its datasets and stages as soon as they can
-start, then its export. The file format and each stage's commands: :mod:`vlocnetpp_core.recipe`.
+start, then its export. The file format and each stage's commands: :mod:`vlocnetpp_core.training.recipe`.
 
 Every dataset still to render (``vlocnetpp synth``, one core each) and every stage (``vlocnetpp train``, on its
 ``threads``) is a job: its own process, scheduled on the machine's cores. The datasets come first, those of the
@@ -32,8 +32,8 @@ from typing import IO
 
 from vlocnetpp_core.errors import UserError
 from vlocnetpp_core.interrupts import sigterm_as_interrupt
-from vlocnetpp_core.recipe import Recipe, Stage, dataset_path, load_recipe, stage_commands
 from vlocnetpp_core.threads import resolve_threads
+from vlocnetpp_core.training.recipe import Recipe, Stage, dataset_path, load_recipe, stage_commands
 
 POLL_S = 1.0  # how often the scheduler looks at its running jobs
 
@@ -42,6 +42,7 @@ def run_recipe(path: str | Path, out: str | Path, cores: int | None = None) -> i
     """Datasets, stages and export of the recipe at ``path`` into ``out``, on ``cores`` (default: the machine's)."""
     recipe = load_recipe(path)
     out = Path(out)
+    jobs = recipe_jobs(recipe, out)  # checks the datasets too, before anything is written
     out.mkdir(parents=True, exist_ok=True)
     cores = cores or os.cpu_count() or 1
 
@@ -51,9 +52,9 @@ def run_recipe(path: str | Path, out: str | Path, cores: int | None = None) -> i
     t0 = time.monotonic()
     try:
         with sigterm_as_interrupt():
-            run_jobs(recipe_jobs(recipe, out), out, log, cores)
+            run_jobs(jobs, out, log, cores)
             if recipe.export:
-                from vlocnetpp_core.recipe_export import export_weights
+                from vlocnetpp_core.training.recipe_export import export_weights
 
                 log(f"export: {export_weights(recipe, out)}")
     finally:
@@ -105,7 +106,7 @@ def recipe_jobs(recipe: Recipe, out: Path, python: str = sys.executable) -> list
 
 def stage_datasets(stage: Stage) -> list[str]:
     """The datasets a stage trains and validates on (its ``data`` and ``val_data``)."""
-    return [stage.flags[key] for key in ("data", "val_data") if key in stage.flags]
+    return [name for name in (stage.data, stage.val_data) if name is not None]
 
 
 SYNTH_KEYS = ("scene", "seed", "loops", "test_loops", "frames_per_loop", "size", "lane_wander")
@@ -114,13 +115,13 @@ SYNTH_KEYS = ("scene", "seed", "loops", "test_loops", "frames_per_loop", "size",
 def synth_args(synth: dict | None, where: str) -> dict:
     """A dataset's ``synth`` keys with ``vlocnetpp synth``'s defaults filled in; ``UserError`` naming ``where`` for a
     missing ``synth``, an unknown key or a bad value."""
-    from vlocnetpp_core.synth.cli import add_arguments
-
     if not isinstance(synth, dict):
         raise UserError(f"{where}: a dataset is {{synth: {{...}}}} (rendered) or {{path: DIR}} (an existing folder)")
     unknown = sorted(set(synth) - set(SYNTH_KEYS))
     if unknown:
         raise UserError(f"{where}: unknown synth key {', '.join(map(repr, unknown))} (known: {', '.join(SYNTH_KEYS)})")
+    from vlocnetpp_core.synth.cli import add_arguments
+
     parser = argparse.ArgumentParser()
     add_arguments(parser)
     args = {}
@@ -217,7 +218,7 @@ def _last_line(path: Path) -> str:
 
 def stage_threads(stage: Stage) -> int:
     """The CPU threads a stage's ``vlocnetpp train`` uses (its ``threads``; train's default: every core)."""
-    return resolve_threads(int(stage.flags.get("threads", os.cpu_count() or 1)))
+    return resolve_threads(int(stage.train.get("threads", os.cpu_count() or 1)))
 
 
 def _start(job: Job, log) -> _Running | None:

@@ -9,27 +9,25 @@ import torch
 
 from vlocnetpp_core.errors import UserError
 
-DTYPES = {"float16": torch.float16, "float32": torch.float32}
-
 
 def export_weights(recipe, out: Path) -> Path:
-    """Write ``recipe.export`` (see :mod:`vlocnetpp_core.recipe`) and return the weights path.
+    """Write ``recipe.export`` (see :mod:`vlocnetpp_core.training.recipe`) and return the weights path.
 
     The covariance calibration is the exported run's (from its validation); when that run did not
     validate, the pose variances come from the ``calibration.pose`` stage and the odometry variances
     from the ``calibration.odometry`` stage (their ``best`` sidecars).
     """
     from vlocnetpp_core.checkpoint import load_checkpoint, save_checkpoint
-    from vlocnetpp_core.recipe import dataset_path
     from vlocnetpp_core.retrieval import ReferenceSet, open_reference, reference_of
+    from vlocnetpp_core.training.recipe import dataset_path
 
-    spec = recipe.export
+    spec = recipe.export  # checked by load_recipe
     weights = spec.get("weights", "best")
-    run_dir = out / spec["stage"]
-    source = run_dir / weights if (run_dir / f"{weights}.safetensors").is_file() else run_dir / "last"
-    dtype = DTYPES.get(str(spec.get("dtype", "float16")))
-    if dtype is None:
-        raise UserError(f"{recipe.path}: export dtype must be one of {', '.join(DTYPES)}")
+    source = out / spec["stage"] / weights
+    if not source.with_suffix(".safetensors").is_file():  # best: no validation of the run scored (every score NaN)
+        raise UserError(f"{recipe.path}: export weights '{weights}': {source.with_suffix('.safetensors')} was not written "
+                        f"by stage {spec['stage']}")
+    dtype = getattr(torch, str(spec.get("dtype", "float16")))  # one of recipe.EXPORT_DTYPES
     model, meta = load_checkpoint(source)
     calibration = meta.get("calibration") or {}
     if calibration.get("source", "default") == "default" and spec.get("calibration"):
@@ -49,7 +47,7 @@ def export_weights(recipe, out: Path) -> Path:
 
 def _stage_calibration(recipe, out: Path, stages: dict) -> dict:
     """Pose variances from the sidecar of ``stages['pose']``'s weights (``best`` or ``last``), odometry variances from ``stages['odometry']``'s."""
-    from vlocnetpp_core.recipe import stage_weights
+    from vlocnetpp_core.training.recipe import stage_weights
 
     parts = {}
     for kind, stage in stages.items():
