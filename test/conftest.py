@@ -21,6 +21,24 @@ def ctrl_c_interrupts() -> None:
     signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
+def pytest_addoption(parser) -> None:
+    parser.addoption("--threads", type=int, default=None, metavar="N",
+                     help="torch and OpenMP threads for the tests and the programs they start (default: the libraries' own), "
+                          "e.g. 1 to check that nothing depends on a thread count")
+
+
+def pytest_configure(config) -> None:
+    threads = config.getoption("--threads")
+    if threads is None:
+        return
+    if threads < 1:
+        raise pytest.UsageError(f"--threads must be >= 1, got {threads}")
+    os.environ["OMP_NUM_THREADS"] = os.environ["MKL_NUM_THREADS"] = str(threads)  # the programs the tests start
+    import torch
+
+    torch.set_num_threads(threads)
+
+
 def _colcon() -> str:
     exe = Path(sys.executable).parent / "colcon"
     return str(exe) if exe.exists() else (shutil.which("colcon") or "colcon")
