@@ -69,7 +69,7 @@ from vlocnetpp_core.extrinsics import CameraExtrinsics, base_pose, to_base_frame
 from vlocnetpp_core.localizer import Localizer
 from vlocnetpp_core.preprocess import FrameError
 from vlocnetpp_core.threads import resolve_threads, use_threads
-from vlocnetpp_ros import conversions
+from vlocnetpp_ros import conversions, dds_profile
 from vlocnetpp_ros.diagnostics import NodeStats, ThrottledLog
 from vlocnetpp_ros.mailbox import LatestMailbox
 from vlocnetpp_ros.parameters import PARAMETERS, check_parameters, default_checkpoint, extrinsics_of, map_of
@@ -313,12 +313,19 @@ def _stamp_key(stamp) -> tuple[int, int]:
 
 
 def main(args: list[str] | None = None) -> int:
-    """Entry point; returns 0 after SIGINT/SIGTERM, 1 when the node cannot start (one log line says why)."""
+    """Entry point; returns 0 after SIGINT/SIGTERM, 1 when the node cannot start (one log line says why).
+
+    Before ``rclpy.init`` the process's Fast DDS participant is given the history memory policy that
+    keeps its memory bounded under bursts from any publisher (:mod:`vlocnetpp_ros.dds_profile`, merged
+    with the user's profile file; the environment is restored once the participant exists)."""
+    profile = dds_profile.apply()
     rclpy.init(args=args)
     node = None
     code = 0
     try:
         node = LocalizerNode()
+        profile.restore()  # the participant exists: Fast DDS has read the profile
+        node.get_logger().info(profile.message)
         use_threads(node.params["num_threads"])  # torch's threads are the process's: set by the program, not the node
         # Everything loaded so far (torch, the model) lives until exit: keep it out of the garbage
         # collector's scans. Fewer pauses while streaming, and exit after a signal takes ~0.2 s
@@ -335,6 +342,7 @@ def main(args: list[str] | None = None) -> int:
             raise
         # SIGINT/SIGTERM while starting: rclpy shut the context down under the constructor
     finally:
+        profile.restore()
         if node is not None:
             node.close()
             node.destroy_node()
