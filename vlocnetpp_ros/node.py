@@ -37,7 +37,9 @@ a reference to a refused message, its buffer or its exception once the callback 
 is done; counters and throttled log keys are bounded (see :mod:`vlocnetpp_ros.diagnostics`).
 Once a second, after the diagnostics, the heap pages freed since are handed back to the system
 (glibc ``malloc_trim``), so the resident memory follows the memory in use after bursts of large
-messages instead of staying at their high-water mark.
+messages instead of staying at their high-water mark. The ``localizer`` program gives its Fast DDS
+readers the ``DYNAMIC`` history memory policy (:mod:`vlocnetpp_ros.dds_profile`), so the transport's
+buffers stay bounded too, whatever the history depth of the publishers.
 """
 
 from __future__ import annotations
@@ -75,10 +77,11 @@ from vlocnetpp_ros.mailbox import LatestMailbox
 from vlocnetpp_ros.parameters import PARAMETERS, check_parameters, default_checkpoint, extrinsics_of, map_of
 
 # Keep-last 10, the depth of ROS's default (reliable) publisher profile. A reliable subscription whose
-# history is shallower than the publisher's window leaks in Fast DDS 2.14 when large (fragmented)
-# messages of varying sizes overflow it: measured ~20 MB per 3,000 malformed 640x480 messages with
-# depth 5, flat with 10 (docs/node.md, "Memory under bad input"). Bounded: at most 10 messages wait
-# in DDS, the callback moves them to the one-slot mailbox at once.
+# history is shallower than the publisher's window grows in Fast DDS 2.14 when large (fragmented)
+# messages of varying sizes overflow it, with rmw_fastrtps's PREALLOCATED_WITH_REALLOC readers; the
+# localizer program gives its readers the DYNAMIC policy instead (vlocnetpp_ros/dds_profile.py), flat
+# for publishers of any depth (docs/node.md, "Memory under bad input"). Bounded: at most 10 messages
+# wait in DDS, the callback moves them to the one-slot mailbox at once.
 CAMERA_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.BEST_AVAILABLE)
 DEPTH_MATCH_FRAMES = 8  # depth images (or stamps of refused ones) kept for matching colour stamps
 DEPTH_WAIT_S = 0.05  # how long a colour frame waits for its depth image (in the worker)
