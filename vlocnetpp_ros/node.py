@@ -37,7 +37,9 @@ a reference to a refused message, its buffer or its exception once the callback 
 is done; counters and throttled log keys are bounded (see :mod:`vlocnetpp_ros.diagnostics`).
 Once a second, after the diagnostics, the heap pages freed since are handed back to the system
 (glibc ``malloc_trim``), so the resident memory follows the memory in use after bursts of large
-messages instead of staying at their high-water mark.
+messages instead of staying at their high-water mark. The ``localizer`` program gives its Fast DDS
+readers the ``DYNAMIC`` history memory policy (:mod:`vlocnetpp_ros.dds_profile`), so the transport's
+buffers stay bounded too, whatever the history depth of the publishers.
 """
 
 from __future__ import annotations
@@ -69,16 +71,17 @@ from vlocnetpp_core.extrinsics import CameraExtrinsics, base_pose, to_base_frame
 from vlocnetpp_core.localizer import Localizer
 from vlocnetpp_core.preprocess import FrameError
 from vlocnetpp_core.threads import resolve_threads, use_threads
-from vlocnetpp_ros import conversions
+from vlocnetpp_ros import conversions, dds_profile
 from vlocnetpp_ros.diagnostics import NodeStats, ThrottledLog
 from vlocnetpp_ros.mailbox import LatestMailbox
 from vlocnetpp_ros.parameters import PARAMETERS, check_parameters, default_checkpoint, extrinsics_of, map_of
 
 # Keep-last 10, the depth of ROS's default (reliable) publisher profile. A reliable subscription whose
-# history is shallower than the publisher's window leaks in Fast DDS 2.14 when large (fragmented)
-# messages of varying sizes overflow it: measured ~20 MB per 3,000 malformed 640x480 messages with
-# depth 5, flat with 10 (docs/node.md, "Memory under bad input"). Bounded: at most 10 messages wait
-# in DDS, the callback moves them to the one-slot mailbox at once.
+# history is shallower than the publisher's window grows in Fast DDS 2.14 when large (fragmented)
+# messages of varying sizes overflow it, with rmw_fastrtps's PREALLOCATED_WITH_REALLOC readers; the
+# localizer program gives its readers the DYNAMIC policy instead (vlocnetpp_ros/dds_profile.py), flat
+# for publishers of any depth (docs/node.md, "Memory under bad input"). Bounded: at most 10 messages
+# wait in DDS, the callback moves them to the one-slot mailbox at once.
 CAMERA_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.BEST_AVAILABLE)
 DEPTH_MATCH_FRAMES = 8  # depth images (or stamps of refused ones) kept for matching colour stamps
 DEPTH_WAIT_S = 0.05  # how long a colour frame waits for its depth image (in the worker)
@@ -313,12 +316,19 @@ def _stamp_key(stamp) -> tuple[int, int]:
 
 
 def main(args: list[str] | None = None) -> int:
-    """Entry point; returns 0 after SIGINT/SIGTERM, 1 when the node cannot start (one log line says why)."""
+    """Entry point; returns 0 after SIGINT/SIGTERM, 1 when the node cannot start (one log line says why).
+
+    Before ``rclpy.init`` the process's Fast DDS participant is given the history memory policy that
+    keeps its memory bounded under bursts from any publisher (:mod:`vlocnetpp_ros.dds_profile`, merged
+    with the user's profile file; the environment is restored once the participant exists)."""
+    profile = dds_profile.apply()
     rclpy.init(args=args)
     node = None
     code = 0
     try:
         node = LocalizerNode()
+        profile.restore()  # the participant exists: Fast DDS has read the profile
+        node.get_logger().info(profile.message)
         use_threads(node.params["num_threads"])  # torch's threads are the process's: set by the program, not the node
         # Everything loaded so far (torch, the model) lives until exit: keep it out of the garbage
         # collector's scans. Fewer pauses while streaming, and exit after a signal takes ~0.2 s
@@ -335,6 +345,7 @@ def main(args: list[str] | None = None) -> int:
             raise
         # SIGINT/SIGTERM while starting: rclpy shut the context down under the constructor
     finally:
+        profile.restore()
         if node is not None:
             node.close()
             node.destroy_node()

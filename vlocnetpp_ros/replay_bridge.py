@@ -105,9 +105,9 @@ def _die_with_parent() -> None:
 class _NodeProcess:
     """The localizer subprocess; its output goes to a log file quoted when it fails."""
 
-    def __init__(self, argv: list[str]):
+    def __init__(self, argv: list[str], env: dict[str, str] | None = None):
         self.log = tempfile.TemporaryFile(mode="w+b")
-        self.proc = subprocess.Popen(argv, stdout=self.log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+        self.proc = subprocess.Popen(argv, stdout=self.log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env,
                                      preexec_fn=_die_with_parent if sys.platform == "linux" else None)
 
     def tail(self, lines: int = 15) -> str:
