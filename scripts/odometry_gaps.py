@@ -16,9 +16,9 @@ import argparse
 import numpy as np
 import torch
 
-from vlocnetpp_core.checkpoint import load_checkpoint
 from vlocnetpp_core.data.dataset import open_dataset
-from vlocnetpp_core.preprocess import image_tensor, resize_image
+from vlocnetpp_core.inference.checkpoint import load_checkpoint
+from vlocnetpp_core.inference.preprocess import image_tensor, resize_image
 
 
 def main() -> None:

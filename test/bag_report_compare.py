@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from vlocnetpp_core.bag.evaluate_bag import MatchedFrames
-from vlocnetpp_core.metrics import DEFAULT_THRESHOLDS, MIN_STEP_M, accuracy_key, pose_errors
+from vlocnetpp_core.evaluation.metrics import DEFAULT_THRESHOLDS, MIN_STEP_M, accuracy_key, pose_errors
 
 SCORED_PARTS = ("pose", "odometry", "segmentation")  # a bag holds no step times, so "timing" is left out
 # Rounding of an angle computed as acos of a float64 dot product or trace: near 1, acos(1 - d) ~ sqrt(2 d),

@@ -15,8 +15,8 @@ import numpy as np
 import torch
 
 from vlocnetpp_core import geometry
+from vlocnetpp_core.camera.intrinsics import Intrinsics
 from vlocnetpp_core.data.pfm import write_pfm
-from vlocnetpp_core.intrinsics import Intrinsics
 
 PLANE_Z = 8.0
 K_SMALL = Intrinsics(fx=80.0, fy=80.0, cx=47.5, cy=35.5, width=96, height=72)

@@ -26,7 +26,7 @@ from rclpy.parameter import Parameter
 from sensor_msgs.msg import CompressedImage, Image
 from std_msgs.msg import Header
 
-from vlocnetpp_core.localizer import Localizer
+from vlocnetpp_core.inference.localizer import Localizer
 from vlocnetpp_ros import conversions
 
 OUTPUTS = {"pose": ("vlocnet/pose", PoseStamped), "pwc": ("vlocnet/pose_with_covariance", PoseWithCovarianceStamped),

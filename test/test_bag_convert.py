@@ -21,12 +21,12 @@ from rosbags.highlevel import AnyReader
 from vlocnetpp_core.bag import convert as conv
 from vlocnetpp_core.bag import messages
 from vlocnetpp_core.bag.bagfile import BagReader
+from vlocnetpp_core.camera.intrinsics import Intrinsics
 from vlocnetpp_core.cli import main
 from vlocnetpp_core.data import open_dataset
 from vlocnetpp_core.data.sample import SEQUENCE_GAP_S
-from vlocnetpp_core.intrinsics import Intrinsics
+from vlocnetpp_core.inference.preprocess import FrameError
 from vlocnetpp_core.outputs import temp_dir_for
-from vlocnetpp_core.preprocess import FrameError
 
 REPO = Path(__file__).resolve().parents[1]
 LOOP_A, LOOP_B = list(range(1, 9)), list(range(101, 106))  # two loops of one split (id gap -> two sequences)

@@ -15,7 +15,7 @@ from vlocnetpp_core import geometry
 from vlocnetpp_core.bag import messages
 from vlocnetpp_core.bag.bagfile import BagWriter
 from vlocnetpp_core.cli import main
-from vlocnetpp_core.metrics import SequenceRecorder, evaluate_sequences
+from vlocnetpp_core.evaluation.metrics import SequenceRecorder, evaluate_sequences
 
 SEQ_LENGTHS = (9, 7)
 DROPPED = {3, 12}  # frames the "node" did not answer (record indices over both sequences)
@@ -125,7 +125,7 @@ def _write_bag_with_images(path, rng, compressed: bool, skip_image: int | None =
 
 
 def test_evaluate_bag_scores_the_retrieval_baseline_on_the_bag_images(tmp_path, capsys):
-    from vlocnetpp_core.retrieval import ReferenceSet
+    from vlocnetpp_core.evaluation.retrieval import ReferenceSet
 
     rng = np.random.default_rng(3)
     for compressed in (False, True):

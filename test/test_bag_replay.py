@@ -20,8 +20,8 @@ from vlocnetpp_core.bag import messages
 from vlocnetpp_core.bag.bagfile import BagReader
 from vlocnetpp_core.bag.evaluate_bag import read_matched_frames
 from vlocnetpp_core.bag.replay import ODOMETRY_TOPIC, POSE_TOPIC, POSE_WITH_COVARIANCE_TOPIC, SEGMENTATION_TOPIC
-from vlocnetpp_core.checkpoint import init_checkpoint
 from vlocnetpp_core.cli import main
+from vlocnetpp_core.inference.checkpoint import init_checkpoint
 from vlocnetpp_core.model import load_model_config
 
 REPO = Path(__file__).resolve().parents[1]
@@ -113,7 +113,7 @@ def _segmentation_margins(setup: Path, tmp_path: Path) -> dict[int, np.ndarray]:
     the mask takes its class from (nearest neighbour, as the localizer brings the mask back), relative to
     the frame's largest logit magnitude (at least 1); from the model run over the bag in this process."""
     from vlocnetpp_core.bag.replay import replay
-    from vlocnetpp_core.localizer import Localizer
+    from vlocnetpp_core.inference.localizer import Localizer
 
     localizer = Localizer.from_checkpoint(setup / "model")
     stamps, gaps = [], []
@@ -198,7 +198,7 @@ def test_replay_errors_are_one_line(setup, tmp_path, capsys):
 def test_use_depth_gives_the_bag_depth_to_the_localizer(setup, tmp_path):
     from vlocnetpp_core.bag.replay import replay
     from vlocnetpp_core.data import open_dataset
-    from vlocnetpp_core.localizer import Localizer
+    from vlocnetpp_core.inference.localizer import Localizer
 
     localizer = Localizer.from_checkpoint(setup / "model")
     given = []

@@ -10,7 +10,10 @@ from pathlib import Path
 import pytest
 import torch
 
-from vlocnetpp_core.checkpoint import (
+from vlocnetpp_core.camera.intrinsics import Intrinsics
+from vlocnetpp_core.classes import CLASS_NAMES
+from vlocnetpp_core.errors import DataError
+from vlocnetpp_core.inference.checkpoint import (
     DEFAULT_ODOMETRY_VARIANCE,
     DEFAULT_POSE_VARIANCE,
     calibration_variances,
@@ -20,9 +23,6 @@ from vlocnetpp_core.checkpoint import (
     read_checkpoint_tensors,
     save_checkpoint,
 )
-from vlocnetpp_core.classes import CLASS_NAMES
-from vlocnetpp_core.errors import DataError
-from vlocnetpp_core.intrinsics import Intrinsics
 from vlocnetpp_core.model import VLocNetPP, load_model_config
 
 

@@ -10,11 +10,11 @@ import pytest
 from data_fixtures import K_SMALL, trajectory, write_deeploc_split, write_sevenscenes
 
 from vlocnetpp_core import geometry
+from vlocnetpp_core.camera.intrinsics import DEEPLOC_DEFAULT, SEVEN_SCENES_DEFAULT, Intrinsics
 from vlocnetpp_core.data import open_dataset, read_deeploc, read_sevenscenes
 from vlocnetpp_core.data.pfm import write_pfm
 from vlocnetpp_core.data.sample import SEQUENCE_GAP_S
 from vlocnetpp_core.errors import DataError
-from vlocnetpp_core.intrinsics import DEEPLOC_DEFAULT, SEVEN_SCENES_DEFAULT, Intrinsics
 
 # Two loops merged in one folder: ids 8..13 (unpadded, so "10" < "8" lexicographically) and 10001..10004.
 LOOP_A = list(range(8, 14))

@@ -7,6 +7,7 @@ import pytest
 from data_fixtures import K_SMALL, render_plane, trajectory
 
 from vlocnetpp_core import geometry
+from vlocnetpp_core.camera.intrinsics import Intrinsics
 from vlocnetpp_core.data.check import pair_warp_ratio
 from vlocnetpp_core.data.sample import Frame
 from vlocnetpp_core.data.transforms import (
@@ -19,7 +20,6 @@ from vlocnetpp_core.data.transforms import (
     make_transform,
     resize_frame,
 )
-from vlocnetpp_core.intrinsics import Intrinsics
 
 K0 = Intrinsics(fx=150.0, fy=140.0, cx=99.5, cy=74.5, width=200, height=150)
 POINT = np.array([0.3, -0.2, 4.0])  # camera frame, metres

@@ -11,16 +11,16 @@ import torch
 
 from vlocnetpp_core import cli
 from vlocnetpp_core.classes import CLASS_NAMES
+from vlocnetpp_core.evaluation.metrics import kitti_segment_errors, pose_errors
+from vlocnetpp_core.evaluation.trajectory import read_tum
 from vlocnetpp_core.geometry import pose_to_matrix
-from vlocnetpp_core.metrics import kitti_segment_errors, pose_errors
-from vlocnetpp_core.trajectory import read_tum
 
 FRAMES = 12
 
 
 @pytest.fixture(scope="module")
 def evaluated(tmp_path_factory):
-    from vlocnetpp_core.checkpoint import save_checkpoint
+    from vlocnetpp_core.inference.checkpoint import save_checkpoint
     from vlocnetpp_core.model import VLocNetPP, load_model_config
     from vlocnetpp_core.synth import render_dataset
 
@@ -74,7 +74,7 @@ def test_evaluate_writes_report_trajectories_and_plots(evaluated, capsys):
 
     # the baseline: the pose of the nearest training image of --data, on the same frames
     from vlocnetpp_core.data import open_dataset
-    from vlocnetpp_core.retrieval import describe, open_reference
+    from vlocnetpp_core.evaluation.retrieval import describe, open_reference
 
     test = open_dataset(tmp / "data", None, "test")
     frames = [test.load(i) for i in range(len(test))]
@@ -94,7 +94,7 @@ def test_evaluate_writes_report_trajectories_and_plots(evaluated, capsys):
 def test_evaluate_streams_through_the_localizer(evaluated):
     """The global poses written are those of the Localizer stepping over the frames in order."""
     from vlocnetpp_core.data import open_dataset
-    from vlocnetpp_core.localizer import Localizer
+    from vlocnetpp_core.inference.localizer import Localizer
 
     tmp, _, out = evaluated
     written = read_tum(out / "traj" / "seq-00" / "global_pose.tum")
@@ -141,7 +141,7 @@ def test_evaluate_missing_checkpoint_is_one_line(evaluated, capsys):
 
 def test_evaluate_names_the_tasks_a_checkpoint_was_not_trained_for(evaluated, tmp_path, capsys):
     """A single-task checkpoint's other columns come from untrained streams: evaluate says which."""
-    from vlocnetpp_core.checkpoint import save_checkpoint
+    from vlocnetpp_core.inference.checkpoint import save_checkpoint
     from vlocnetpp_core.model import VLocNetPP, load_model_config
 
     tmp, _, _ = evaluated
@@ -166,6 +166,6 @@ def test_evaluate_names_the_tasks_a_checkpoint_was_not_trained_for(evaluated, tm
     ({}, None),
 ])
 def test_untrained_tasks_from_the_sidecar(training, untrained):
-    from vlocnetpp_core.evaluate import untrained_tasks
+    from vlocnetpp_core.evaluation.evaluate import untrained_tasks
 
     assert untrained_tasks({"training": training}) == untrained

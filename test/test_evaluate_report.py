@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from vlocnetpp_core import cli
-from vlocnetpp_core.metrics import SequenceRecorder, evaluate_sequences
-from vlocnetpp_core.report import format_report, write_json, write_trajectories
+from vlocnetpp_core.evaluation.metrics import SequenceRecorder, evaluate_sequences
+from vlocnetpp_core.evaluation.report import format_report, write_json, write_trajectories
 
 IDENTITY_Q = np.array([1.0, 0.0, 0.0, 0.0])
 

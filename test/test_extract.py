@@ -17,10 +17,10 @@ from vlocnetpp_core.bag import extract_writer, messages
 from vlocnetpp_core.bag.bagfile import BagReader
 from vlocnetpp_core.bag.extract_plan import Selection, plan_frames
 from vlocnetpp_core.bag.pose_source import TfCollector
+from vlocnetpp_core.camera.intrinsics import Intrinsics
 from vlocnetpp_core.cli import main
 from vlocnetpp_core.data import ClipDataset, open_dataset
 from vlocnetpp_core.data.check import dataset_info
-from vlocnetpp_core.intrinsics import Intrinsics
 
 LOOP_A, LOOP_B = list(range(1, 7)), list(range(101, 105))  # two loops -> two sequences (10 s apart in the bag)
 # T_base_link,camera: the camera 0.3 m ahead, 0.1 m right and 0.8 m up, with the optical rotation (z forward = base x, x right = -base y)
@@ -305,5 +305,5 @@ def test_extract_loads_neither_the_localizer_nor_the_model():
     (extrinsics names the localizer's result type for annotations only). Torch itself still comes with
     vlocnetpp_core.geometry, whose one implementation of the pose algebra runs in torch for numpy inputs too."""
     code = ("import sys; from vlocnetpp_core.cli import build_parser; build_parser('extract'); "
-            "print(sorted(m for m in ('vlocnetpp_core.localizer', 'vlocnetpp_core.checkpoint', 'vlocnetpp_core.model') if m in sys.modules))")
+            "print(sorted(m for m in ('vlocnetpp_core.inference.localizer', 'vlocnetpp_core.inference.checkpoint', 'vlocnetpp_core.model') if m in sys.modules))")
     assert subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip() == "[]"

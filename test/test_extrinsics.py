@@ -1,4 +1,4 @@
-"""Camera -> base frame (vlocnetpp_core.extrinsics, no ROS): poses against 4x4 matrices built with scipy, covariances."""
+"""Camera -> base frame (vlocnetpp_core.camera.extrinsics, no ROS): poses against 4x4 matrices built with scipy, covariances."""
 
 from __future__ import annotations
 
@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from vlocnetpp_core import extrinsics as ex
+from vlocnetpp_core.camera import extrinsics as ex
 from vlocnetpp_core.errors import UserError
-from vlocnetpp_core.localizer import LocalizerResult
+from vlocnetpp_core.inference.localizer import LocalizerResult
 
 RNG = np.random.default_rng(7)
 # a camera looking along a z-up base_link's x axis (optical: x right, y down, z forward), 0.2 m ahead, 1 m up

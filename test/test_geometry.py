@@ -13,7 +13,7 @@ from hypothesis.extra.numpy import arrays
 from scipy.spatial.transform import Rotation
 
 from vlocnetpp_core import geometry as g
-from vlocnetpp_core.intrinsics import Intrinsics
+from vlocnetpp_core.camera.intrinsics import Intrinsics
 
 finite = st.floats(-1.0, 1.0, allow_nan=False, allow_infinity=False)
 quats = arrays(np.float64, (4,), elements=finite).filter(lambda q: np.linalg.norm(q) > 0.1)

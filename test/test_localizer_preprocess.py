@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from vlocnetpp_core.intrinsics import Intrinsics
-from vlocnetpp_core.preprocess import (
+from vlocnetpp_core.camera.intrinsics import Intrinsics
+from vlocnetpp_core.inference.preprocess import (
     DEPTH_ENCODINGS,
     IMAGE_ENCODINGS,
     FrameError,

@@ -124,8 +124,8 @@ def test_a_prior_far_from_the_map_or_a_blank_frame_keeps_the_network_pose_and_sa
 
 
 def test_the_localizer_refines_the_shipped_networks_pose_and_falls_back_on_a_blank_frame(campus, campus_map):
-    from vlocnetpp_core.checkpoint import shipped_checkpoint
-    from vlocnetpp_core.localizer import Localizer
+    from vlocnetpp_core.inference.checkpoint import shipped_checkpoint
+    from vlocnetpp_core.inference.localizer import Localizer
 
     loc = Localizer.from_checkpoint(shipped_checkpoint(), num_threads=2, map_path=campus_map)
     index = open_dataset(campus, None, "train")

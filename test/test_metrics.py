@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation
 
 from vlocnetpp_core import geometry, metrics
 from vlocnetpp_core.errors import DataError
-from vlocnetpp_core.trajectory import (
+from vlocnetpp_core.evaluation.trajectory import (
     Trajectory,
     accumulate_odometry,
     align_trajectory,

@@ -6,8 +6,8 @@ import cv2
 import numpy as np
 
 from vlocnetpp_core.classes import CLASS_COLORS
-from vlocnetpp_core.metrics import SequenceRecorder
-from vlocnetpp_core.plots import top_down_axes, write_plots
+from vlocnetpp_core.evaluation.metrics import SequenceRecorder
+from vlocnetpp_core.evaluation.plots import top_down_axes, write_plots
 
 
 def read_rgb(path) -> np.ndarray:

@@ -22,11 +22,11 @@ from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import Header
 
-from vlocnetpp_core.checkpoint import init_checkpoint
+from vlocnetpp_core.camera.intrinsics import Intrinsics
 from vlocnetpp_core.errors import UserError
-from vlocnetpp_core.intrinsics import Intrinsics
-from vlocnetpp_core.localizer import Localizer
-from vlocnetpp_core.preprocess import FrameError
+from vlocnetpp_core.inference.checkpoint import init_checkpoint
+from vlocnetpp_core.inference.localizer import Localizer
+from vlocnetpp_core.inference.preprocess import FrameError
 from vlocnetpp_ros import conversions, storm
 from vlocnetpp_ros.diagnostics import MAX_EVENTS, MAX_KEYS, MAX_LINE, NodeStats, ThrottledLog
 from vlocnetpp_ros.node import PARAMETERS, LocalizerNode, default_checkpoint

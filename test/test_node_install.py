@@ -30,8 +30,8 @@ from node_fixtures import (
 )
 from sensor_msgs.msg import Image
 
-from vlocnetpp_core.checkpoint import save_checkpoint
-from vlocnetpp_core.localizer import Localizer
+from vlocnetpp_core.inference.checkpoint import save_checkpoint
+from vlocnetpp_core.inference.localizer import Localizer
 from vlocnetpp_ros import conversions
 
 DOMAIN = domain_id(60)

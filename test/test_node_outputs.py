@@ -21,10 +21,10 @@ from node_fixtures import CAMERA, camera_frames, domain_id, image_msg, localizer
 from rclpy.parameter import Parameter
 from scipy.spatial.transform import Rotation
 
-from vlocnetpp_core import extrinsics
-from vlocnetpp_core.checkpoint import init_checkpoint
+from vlocnetpp_core.camera import extrinsics
 from vlocnetpp_core.errors import UserError
-from vlocnetpp_core.localizer import Localizer
+from vlocnetpp_core.inference.checkpoint import init_checkpoint
+from vlocnetpp_core.inference.localizer import Localizer
 from vlocnetpp_core.model import load_model_config
 from vlocnetpp_ros import conversions
 from vlocnetpp_ros.node import LocalizerNode

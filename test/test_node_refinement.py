@@ -34,9 +34,9 @@ from vlocnetpp_core.bag.topics import (
     POSE_TOPIC,
     POSE_WITH_COVARIANCE_TOPIC,
 )
-from vlocnetpp_core.checkpoint import resolve_map_path, shipped_checkpoint
 from vlocnetpp_core.cli import main
 from vlocnetpp_core.errors import DataError, UserError
+from vlocnetpp_core.inference.checkpoint import resolve_map_path, shipped_checkpoint
 from vlocnetpp_ros import conversions
 
 DOMAIN = domain_id(40)
@@ -141,8 +141,8 @@ def test_the_node_with_a_map_publishes_refined_poses_beside_the_network_pose(cam
 
 
 def test_with_base_frame_the_network_pose_is_the_bases_too(campus, make_node):
-    from vlocnetpp_core.extrinsics import CameraExtrinsics, base_pose
-    from vlocnetpp_core.localizer import Localizer
+    from vlocnetpp_core.camera.extrinsics import CameraExtrinsics, base_pose
+    from vlocnetpp_core.inference.localizer import Localizer
 
     values = [0.2, 0.0, 1.0, 0.5, -0.5, 0.5, -0.5]  # a camera looking along a z-up base's x axis
     node, tester = make_node(checkpoint=str(campus.model), map=str(campus.map), base_frame="base_link", camera_extrinsics=values)

@@ -45,8 +45,8 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import Header
 
-from vlocnetpp_core.checkpoint import init_checkpoint
-from vlocnetpp_core.localizer import Localizer
+from vlocnetpp_core.inference.checkpoint import init_checkpoint
+from vlocnetpp_core.inference.localizer import Localizer
 from vlocnetpp_ros import conversions, storm
 
 DOMAIN = domain_id(192)  # 192..231: ROS domain ids stay <= 232

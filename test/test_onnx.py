@@ -14,15 +14,15 @@ import pytest
 import torch
 from model_fixtures import one_thread  # noqa: F401  (autouse: every test on one thread)
 
-from vlocnetpp_core.checkpoint import init_checkpoint, load_checkpoint, read_checkpoint_meta, save_checkpoint
+from vlocnetpp_core.camera.intrinsics import Intrinsics
 from vlocnetpp_core.cli import main
 from vlocnetpp_core.errors import DataError, UserError
-from vlocnetpp_core.intrinsics import Intrinsics
-from vlocnetpp_core.localizer import Localizer
+from vlocnetpp_core.inference.checkpoint import init_checkpoint, load_checkpoint, read_checkpoint_meta, save_checkpoint
+from vlocnetpp_core.inference.localizer import Localizer
+from vlocnetpp_core.inference.onnx_backend import OnnxStep, onnx_step_for
+from vlocnetpp_core.inference.onnx_export import export_checkpoint, read_metadata, state_names
+from vlocnetpp_core.inference.preprocess import network_input
 from vlocnetpp_core.model import VLocNetPP, load_model_config
-from vlocnetpp_core.onnx_backend import OnnxStep, onnx_step_for
-from vlocnetpp_core.onnx_export import export_checkpoint, read_metadata, state_names
-from vlocnetpp_core.preprocess import network_input
 
 POSE_TOL = 1e-4  # metres / quaternion components
 LOGIT_TOL = 1e-4  # relative to the largest |logit| of the frame (an untrained net's logits reach ~100)

@@ -26,10 +26,10 @@ from model_fixtures import (
 from vlocnetpp_core.bag import messages
 from vlocnetpp_core.bag.bagfile import BagReader
 from vlocnetpp_core.bag.replay import OUTPUT_TYPES, SEGMENTATION_TOPIC, checkpoint_output_types
-from vlocnetpp_core.checkpoint import init_checkpoint
 from vlocnetpp_core.cli import main
 from vlocnetpp_core.errors import DataError
-from vlocnetpp_core.localizer import Localizer
+from vlocnetpp_core.inference.checkpoint import init_checkpoint
+from vlocnetpp_core.inference.localizer import Localizer
 from vlocnetpp_core.model import ModelConfig, VLocNetPP, load_model_config, params_per_stream, stage_tasks
 from vlocnetpp_core.model.assembly import trained_tasks
 

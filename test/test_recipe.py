@@ -12,12 +12,12 @@ from pathlib import Path
 import pytest
 import yaml
 
-from vlocnetpp_core.checkpoint import read_checkpoint_meta
 from vlocnetpp_core.cli import main as cli
 from vlocnetpp_core.data import open_dataset
 from vlocnetpp_core.errors import UserError
+from vlocnetpp_core.evaluation.retrieval import ReferenceSet
+from vlocnetpp_core.inference.checkpoint import read_checkpoint_meta
 from vlocnetpp_core.model import load_model_config
-from vlocnetpp_core.retrieval import ReferenceSet
 from vlocnetpp_core.training.config import TrainConfig
 from vlocnetpp_core.training.recipe import load_recipe, stage_commands, stage_configs, stage_weights
 from vlocnetpp_core.training.recipe_run import run_recipe

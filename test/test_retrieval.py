@@ -7,9 +7,9 @@ import pytest
 
 from vlocnetpp_core.data import open_dataset
 from vlocnetpp_core.errors import DataError
-from vlocnetpp_core.metrics import SequenceRecorder, evaluate_sequences, pose_errors
-from vlocnetpp_core.report import add_baseline, format_report
-from vlocnetpp_core.retrieval import ReferenceSet, describe, open_reference, reference_of
+from vlocnetpp_core.evaluation.metrics import SequenceRecorder, evaluate_sequences, pose_errors
+from vlocnetpp_core.evaluation.report import add_baseline, format_report
+from vlocnetpp_core.evaluation.retrieval import ReferenceSet, describe, open_reference, reference_of
 
 
 @pytest.fixture(scope="module")

@@ -19,10 +19,10 @@ import pytest
 import torch
 
 from vlocnetpp_core import geometry
-from vlocnetpp_core.checkpoint import load_checkpoint, save_checkpoint, shipped_checkpoint
 from vlocnetpp_core.data import open_dataset
-from vlocnetpp_core.localizer import Localizer
-from vlocnetpp_core.metrics import confusion_matrix, segmentation_metrics
+from vlocnetpp_core.evaluation.metrics import confusion_matrix, segmentation_metrics
+from vlocnetpp_core.inference.checkpoint import load_checkpoint, save_checkpoint, shipped_checkpoint
+from vlocnetpp_core.inference.localizer import Localizer
 from vlocnetpp_core.model import VLocNetPP
 from vlocnetpp_core.synth import render_dataset
 
@@ -81,8 +81,8 @@ def test_shipped_model_beats_an_untrained_one(fresh_loop, tmp_path):
 def test_the_shipped_retrieval_baseline_is_computed_from_the_training_images(fresh_loop):
     """The reference beside the model holds the descriptors of its training images (at least as many as the sidecar
     says its last stage trained on) and retrieves, for each fresh frame, the pose of one of them: the README's baseline row."""
-    from vlocnetpp_core.checkpoint import read_checkpoint_meta
-    from vlocnetpp_core.retrieval import ReferenceSet, describe, reference_of
+    from vlocnetpp_core.evaluation.retrieval import ReferenceSet, describe, reference_of
+    from vlocnetpp_core.inference.checkpoint import read_checkpoint_meta
 
     shipped = shipped_checkpoint()
     reference = ReferenceSet.load(reference_of(shipped))

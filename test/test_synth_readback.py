@@ -7,9 +7,9 @@ import json
 import numpy as np
 import pytest
 
+from vlocnetpp_core.camera.intrinsics import Intrinsics
 from vlocnetpp_core.data import ClipDataset, make_transform, read_deeploc
 from vlocnetpp_core.data.check import dataset_info
-from vlocnetpp_core.intrinsics import Intrinsics
 
 FRAMES = 10
 SIZE = (160, 96)

@@ -164,7 +164,7 @@ def test_synth_leaves_no_parent_folders_it_made_when_it_fails(tmp_path, monkeypa
 def test_init_from_a_checkpoint_sharing_no_tensor_is_refused(tiny, tmp_path, capsys):
     from safetensors.torch import load_file, save_file
 
-    from vlocnetpp_core.checkpoint import save_checkpoint
+    from vlocnetpp_core.inference.checkpoint import save_checkpoint
     from vlocnetpp_core.model import VLocNetPP
 
     other = tmp_path / "OTHER.safetensors"

@@ -18,8 +18,8 @@ import yaml
 from conftest import REPO
 from learning_probe import deterministic, probe_batch, probe_losses, ratios, train_config, train_probed
 
-from vlocnetpp_core.checkpoint import load_checkpoint
 from vlocnetpp_core.cli import main as cli
+from vlocnetpp_core.inference.checkpoint import load_checkpoint
 from vlocnetpp_core.model import load_model_config
 from vlocnetpp_core.synth import render_dataset
 
@@ -125,7 +125,7 @@ def test_stage_checkpoints_have_sidecar_and_calibration(stage_runs):
         assert meta["input_size"] == [64, 48]
         assert len(meta["calibration"]["pose_variance"]) == 6
     meta = load_checkpoint(stage_runs["stl-vo"] / "last")[1]
-    from vlocnetpp_core.checkpoint import DEFAULT_ODOMETRY_VARIANCE
+    from vlocnetpp_core.inference.checkpoint import DEFAULT_ODOMETRY_VARIANCE
 
     assert meta["calibration"]["source"].startswith("validation")
     assert all(v > 0 for v in meta["calibration"]["odometry_variance"])
@@ -154,7 +154,7 @@ def test_validation_counts_every_training_stride_and_calibrates_at_the_first(tin
 
 def assert_second_stage_kept_the_trunk(first: Path, second: Path, own_stream: str) -> None:
     """The second pose stage has the first one's trunk (weights and BatchNorm statistics) and trained its own stream."""
-    from vlocnetpp_core.checkpoint import read_checkpoint_tensors
+    from vlocnetpp_core.inference.checkpoint import read_checkpoint_tensors
 
     a, b = read_checkpoint_tensors(first / "last")[0], read_checkpoint_tensors(second / "last")[0]
     trunk = [k for k in a if k.startswith("trunk.")]
@@ -176,7 +176,7 @@ def test_stl_loc_on_stl_vo_keeps_the_odometry_trunk(tiny, stage_runs, tmp_path):
 
 
 def test_stl_loc_takes_an_stl_seg_encoder_as_its_backbone(tiny, stage_runs, tmp_path):
-    from vlocnetpp_core.checkpoint import read_checkpoint_tensors
+    from vlocnetpp_core.inference.checkpoint import read_checkpoint_tensors
 
     data, config = tiny
     train(data, config, tmp_path / "loc", "stl-loc", 0, "--init", str(stage_runs["stl-seg"] / "last.safetensors"))
@@ -244,7 +244,7 @@ def test_mtl_semantic_fusion_starts_as_an_identity(tiny, stage_runs):
 def test_mtl_with_frozen_parts_trains_only_the_rest(tiny, stage_runs, tmp_path):
     # the paper's multitask network (Res4c semantic fusion) with only the global stream and its fusion learning:
     # the frozen parts keep their weights and BatchNorm statistics bit for bit, the sidecar records them
-    from vlocnetpp_core.checkpoint import read_checkpoint_tensors
+    from vlocnetpp_core.inference.checkpoint import read_checkpoint_tensors
 
     data, config = tiny
     inits = [a for stage in ("stl-loc", "stl-vo", "stl-seg") for a in ("--init", str(stage_runs[stage] / "last.safetensors"))]
@@ -304,7 +304,7 @@ def test_mtl_assembled_without_steps_is_exactly_its_stages(tiny, stage_runs, tmp
 
 def test_an_assembled_network_takes_a_retrained_stream_from_a_later_init(tiny, stage_runs, tmp_path):
     # an mtl checkpoint gives every stream; a later single-task init replaces its own stream (and only that)
-    from vlocnetpp_core.checkpoint import read_checkpoint_tensors
+    from vlocnetpp_core.inference.checkpoint import read_checkpoint_tensors
     from vlocnetpp_core.model.stages import stream_of
 
     data, config = tiny
@@ -323,7 +323,7 @@ def test_an_assembled_network_takes_a_retrained_stream_from_a_later_init(tiny, s
 def test_a_retrained_stream_of_another_head_shape_replaces_the_assembled_one(tiny, stage_runs, tmp_path, capsys):
     # the shipped model's odometry head retrained with the other pooling (average <-> flatten: fc1 of another shape)
     # and swapped in: the assembled checkpoint's own odometry head is replaced, so its shape does not matter
-    from vlocnetpp_core.checkpoint import read_checkpoint_tensors
+    from vlocnetpp_core.inference.checkpoint import read_checkpoint_tensors
     from vlocnetpp_core.model.stages import stream_of
 
     data, config = tiny
@@ -368,8 +368,8 @@ def test_restart_keeps_weights_and_step_with_a_fresh_optimiser_and_loss_weights(
     loss weights start anew; --resume restores both. Adam's first step moves every weight by the rate exactly."""
     from safetensors.torch import load_file
 
-    from vlocnetpp_core.checkpoint import read_checkpoint_tensors
     from vlocnetpp_core.cli import build_parser
+    from vlocnetpp_core.inference.checkpoint import read_checkpoint_tensors
     from vlocnetpp_core.training.lr_schedule import LearningRatePhase
     from vlocnetpp_core.training.trainer import Trainer
 
@@ -483,8 +483,8 @@ def test_pose_only_refuses_stl_seg(unlabelled, tmp_path, capsys):
 
 
 def test_pose_only_trains_without_labels_or_depth(unlabelled, tmp_path, capsys):
-    from vlocnetpp_core.checkpoint import read_checkpoint_tensors
     from vlocnetpp_core.data import open_dataset
+    from vlocnetpp_core.inference.checkpoint import read_checkpoint_tensors
 
     data, config = unlabelled
     index = open_dataset(data, None, "train")

@@ -21,14 +21,14 @@ COMMANDS: dict[str, tuple[str, str, tuple[str, ...]]] = {
     "data-info": ("vlocnetpp_core.data.check", "summarise and sanity-check a dataset (run before training)", ()),
     "model-info": ("vlocnetpp_core.model.info", "parameter counts per stream of a model config", ()),
     "train": ("vlocnetpp_core.training.train", "train a stage (stl-loc, stl-vo, stl-seg, mtl)", ()),
-    "evaluate": ("vlocnetpp_core.evaluate", "evaluate a checkpoint on a dataset with the paper's metrics", ()),
+    "evaluate": ("vlocnetpp_core.evaluation.evaluate", "evaluate a checkpoint on a dataset with the paper's metrics", ()),
     "convert": ("vlocnetpp_core.bag.convert", "convert a DeepLoc / 7-Scenes dataset to a ROS 2 MCAP bag", ("convert-deeploc",)),
     "extract": ("vlocnetpp_core.bag.extract", "turn a robot's ROS 2 bag into a DeepLoc-layout dataset (images, poses, depth)", ()),
     "replay": ("vlocnetpp_core.bag.replay", "run the localizer over a bag and write an output bag", ()),
     "map": ("vlocnetpp_core.mapping.cli", "build a keyframe map of training images for refinement (map build, map info)", ()),
     "evaluate-bag": ("vlocnetpp_core.bag.evaluate_bag", "score a bag holding ground truth and localizer outputs", ()),
     "bench": ("vlocnetpp_core.bench", "speed and memory benchmarks against the performance targets", ()),
-    "export-onnx": ("vlocnetpp_core.onnx_export", "export the streaming step to ONNX", ()),
+    "export-onnx": ("vlocnetpp_core.inference.onnx_export", "export the streaming step to ONNX", ()),
 }
 
 

@@ -27,8 +27,8 @@ import time
 from pathlib import Path
 
 from vlocnetpp_core.bag import topics
-from vlocnetpp_core.checkpoint import MAP_AUTO
 from vlocnetpp_core.errors import UserError
+from vlocnetpp_core.inference.checkpoint import MAP_AUTO
 from vlocnetpp_core.mapping.build import ANGLE_DEG, SPACING_M
 from vlocnetpp_core.programs import program_command
 
@@ -59,12 +59,12 @@ def _done(t0: float) -> None:
 def run(args: argparse.Namespace) -> int:
     from vlocnetpp_core.bag.convert import convert
     from vlocnetpp_core.bag.evaluate_bag import bag_report, refined_share_line
-    from vlocnetpp_core.checkpoint import resolve_map_path, shipped_checkpoint
     from vlocnetpp_core.classes import CLASS_NAMES
     from vlocnetpp_core.data import open_dataset
+    from vlocnetpp_core.evaluation.report import format_report, write_outputs
+    from vlocnetpp_core.evaluation.retrieval import ReferenceSet, reference_of
+    from vlocnetpp_core.inference.checkpoint import resolve_map_path, shipped_checkpoint
     from vlocnetpp_core.mapping.refiner import Refiner
-    from vlocnetpp_core.report import format_report, write_outputs
-    from vlocnetpp_core.retrieval import ReferenceSet, reference_of
     from vlocnetpp_core.synth import render_dataset
 
     if args.seed == TRAINING_SEED:

@@ -1,6 +1,6 @@
 """ROS 2 messages <-> numpy for the localizer node (rclpy types; no inference here).
 
-Decoding goes through :mod:`vlocnetpp_core.preprocess`, the code path of the offline tools, so
+Decoding goes through :mod:`vlocnetpp_core.inference.preprocess`, the code path of the offline tools, so
 a bag replayed offline and a live camera give the same arrays. Quaternions are ``(w, x, y, z)``
 in core and ``(x, y, z, w)`` in the messages; they are converted only here. Stamps are float
 seconds in core; output messages reuse the input ``builtin_interfaces/Time`` unchanged.
@@ -17,9 +17,9 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import Header
 
 from vlocnetpp_core import geometry
-from vlocnetpp_core.intrinsics import Intrinsics
-from vlocnetpp_core.localizer import LocalizerResult
-from vlocnetpp_core.preprocess import (
+from vlocnetpp_core.camera.intrinsics import Intrinsics
+from vlocnetpp_core.inference.localizer import LocalizerResult
+from vlocnetpp_core.inference.preprocess import (
     DEPTH_ENCODINGS,
     IMAGE_ENCODINGS,
     FrameError,
@@ -129,7 +129,7 @@ def pose_from_msg(pose: Pose) -> tuple[np.ndarray, np.ndarray]:
 
 
 def pose_stamped(result: LocalizerResult, header: Header) -> PoseStamped:
-    """Global pose ``T_map,cam`` of a result (``T_map,base`` once :func:`vlocnetpp_core.extrinsics.to_base_frame` moved it)."""
+    """Global pose ``T_map,cam`` of a result (``T_map,base`` once :func:`vlocnetpp_core.camera.extrinsics.to_base_frame` moved it)."""
     return PoseStamped(header=header, pose=pose_msg(result.t, result.q))
 
 

@@ -35,7 +35,7 @@ from sensor_msgs.msg import Image
 from std_msgs.msg import Header
 
 from vlocnetpp_core.errors import UserError
-from vlocnetpp_core.localizer import BACKENDS, Localizer
+from vlocnetpp_core.inference.localizer import BACKENDS, Localizer
 from vlocnetpp_core.threads import use_threads
 from vlocnetpp_ros import conversions
 from vlocnetpp_ros.dds_client import RELIABLE as _QOS

@@ -7,7 +7,7 @@ and ``CameraInfo``, and publishes for every processed frame, with the input stam
 
 * ``vlocnet/pose`` (``PoseStamped`` in ``map_frame``): global camera pose, or with ``base_frame``
   set the pose of ``base_frame`` (``T_map,base = T_map,camera camera_extrinsics^{-1}``,
-  :mod:`vlocnetpp_core.extrinsics`); with a keyframe map (parameter ``map``) the refined pose, or
+  :mod:`vlocnetpp_core.camera.extrinsics`); with a keyframe map (parameter ``map``) the refined pose, or
   between refinements (``refine_every``) the propagated one, else the network's;
 * ``vlocnet/pose_with_covariance`` (``PoseWithCovarianceStamped``, same stamp, frame and pose): with
   the calibrated 6x6 covariance (robot_localization's input; that of the refinement when refined);
@@ -22,7 +22,7 @@ and ``CameraInfo``, and publishes for every processed frame, with the input stam
 
 Parameters: :mod:`vlocnetpp_ros.parameters` (``config/localizer.yaml`` sets every one).
 
-All numbers come from :class:`vlocnetpp_core.localizer.Localizer`; this node only converts
+All numbers come from :class:`vlocnetpp_core.inference.localizer.Localizer`; this node only converts
 messages. The subscription callback only drops the message into a one-slot mailbox (never
 blocks); a worker thread takes the newest frame, so a camera faster than the model has its
 older frames dropped and counted. Camera topics use reliability ``BEST_AVAILABLE``: reliable
@@ -66,10 +66,10 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import Header
 
 from vlocnetpp_core.bag import topics
+from vlocnetpp_core.camera.extrinsics import CameraExtrinsics, base_pose, to_base_frame
 from vlocnetpp_core.errors import UserError
-from vlocnetpp_core.extrinsics import CameraExtrinsics, base_pose, to_base_frame
-from vlocnetpp_core.localizer import Localizer
-from vlocnetpp_core.preprocess import FrameError
+from vlocnetpp_core.inference.localizer import Localizer
+from vlocnetpp_core.inference.preprocess import FrameError
 from vlocnetpp_core.threads import resolve_threads, use_threads
 from vlocnetpp_ros import conversions, dds_profile
 from vlocnetpp_ros.diagnostics import NodeStats, ThrottledLog

@@ -6,10 +6,10 @@ from __future__ import annotations
 from pathlib import Path
 
 from vlocnetpp_core.bag import topics
-from vlocnetpp_core.checkpoint import MAP_AUTO, SHIPPED_MODEL, resolve_map_path, shipped_checkpoint
+from vlocnetpp_core.camera.extrinsics import IDENTITY_VALUES, CameraExtrinsics
 from vlocnetpp_core.errors import UserError
-from vlocnetpp_core.extrinsics import IDENTITY_VALUES, CameraExtrinsics
-from vlocnetpp_core.localizer import BACKENDS
+from vlocnetpp_core.inference.checkpoint import MAP_AUTO, SHIPPED_MODEL, resolve_map_path, shipped_checkpoint
+from vlocnetpp_core.inference.localizer import BACKENDS
 
 PACKAGE = "vlocnetpp_ros"
 
@@ -41,7 +41,7 @@ PARAMS_FILE_VALUES: dict[str, object] = {"map": MAP_AUTO}
 
 
 def default_checkpoint() -> Path:
-    """The shipped model (see :func:`vlocnetpp_core.checkpoint.shipped_checkpoint`), as a node error when missing."""
+    """The shipped model (see :func:`vlocnetpp_core.inference.checkpoint.shipped_checkpoint`), as a node error when missing."""
     try:
         return shipped_checkpoint()
     except FileNotFoundError as err:
@@ -78,6 +78,6 @@ def extrinsics_of(p: dict) -> CameraExtrinsics | None:
 
 
 def map_of(p: dict, checkpoint: Path, warn) -> Path | None:
-    """The keyframe map of parameter ``map`` (:func:`vlocnetpp_core.checkpoint.resolve_map_path`; ``warn`` gets the
+    """The keyframe map of parameter ``map`` (:func:`vlocnetpp_core.inference.checkpoint.resolve_map_path`; ``warn`` gets the
     line for a missing ``auto`` map), or None: no refinement. A missing map file named by path is a ``DataError``."""
     return resolve_map_path(checkpoint, p["map"], "parameter map", warn)

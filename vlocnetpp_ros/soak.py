@@ -33,9 +33,9 @@ from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import Header
 
 from vlocnetpp_core.bag import topics
-from vlocnetpp_core.checkpoint import shipped_checkpoint
 from vlocnetpp_core.errors import UserError
-from vlocnetpp_core.localizer import BACKENDS
+from vlocnetpp_core.inference.checkpoint import shipped_checkpoint
+from vlocnetpp_core.inference.localizer import BACKENDS
 from vlocnetpp_ros import conversions, storm
 from vlocnetpp_ros.dds_client import RECORD as _RECORD
 from vlocnetpp_ros.dds_client import RELIABLE as _QOS

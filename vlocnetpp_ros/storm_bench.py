@@ -29,8 +29,8 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import Header
 
-from vlocnetpp_core.checkpoint import shipped_checkpoint
 from vlocnetpp_core.errors import UserError
+from vlocnetpp_core.inference.checkpoint import shipped_checkpoint
 from vlocnetpp_ros import conversions, storm
 from vlocnetpp_ros.dds_client import RECORD, DdsClient
 from vlocnetpp_ros.latency_bench import proc_status_mb

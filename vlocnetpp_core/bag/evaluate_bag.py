@@ -26,7 +26,7 @@ Baselines on the bag's camera images: ``--reference`` the retrieval row (the nea
 ``--map MAP.npz`` the structure-based row (retrieval + SIFT + PnP against the keyframe map, no network:
 :meth:`vlocnetpp_core.mapping.refiner.Refiner.locate`, as ``evaluate --map``; intrinsics from ``/camera/camera_info``).
 
-:func:`vlocnetpp_core.metrics.evaluate_sequences` computes the report, so the numbers equal
+:func:`vlocnetpp_core.evaluation.metrics.evaluate_sequences` computes the report, so the numbers equal
 ``vlocnetpp evaluate`` on the same frames (timing is not in a bag: it is reported as ``-``).
 The bag is read twice (poses, then label maps), streaming: label maps are never all in memory.
 """
@@ -59,9 +59,8 @@ from vlocnetpp_core.bag.topics import (
 )
 from vlocnetpp_core.classes import CLASS_NAMES
 from vlocnetpp_core.errors import DataError, UserError
-from vlocnetpp_core.geometry import matrix_to_quat, pose_to_matrix
-from vlocnetpp_core.metrics import DEFAULT_THRESHOLDS, SequenceResult, confusion_matrix, evaluate_sequences
-from vlocnetpp_core.report import (
+from vlocnetpp_core.evaluation.metrics import DEFAULT_THRESHOLDS, SequenceResult, confusion_matrix, evaluate_sequences
+from vlocnetpp_core.evaluation.report import (
     add_baseline,
     add_report_arguments,
     check_report_args,
@@ -69,6 +68,7 @@ from vlocnetpp_core.report import (
     without_segmentation,
     write_outputs,
 )
+from vlocnetpp_core.geometry import matrix_to_quat, pose_to_matrix
 
 _PENDING_LIMIT = 64  # label maps / masks waiting for their partner stamp (a partner never seen is dropped)
 
@@ -231,7 +231,7 @@ def collect_bag(path: str | Path, ground_truth: GroundTruth = GroundTruth(), max
     """One :class:`SequenceResult` per sequence of the bag at ``path`` (see the module doc); ``samples`` frames per
     sequence are kept for the segmentation strip plot. With ``describe`` also the retrieval descriptors of each
     sequence's camera images, with ``refiner`` the structure-based baseline's poses (:func:`describe_frames`)."""
-    from vlocnetpp_core.report import sample_positions, sequence_name
+    from vlocnetpp_core.evaluation.report import sample_positions, sequence_name
 
     with BagReader(path) as reader:
         frames = read_matched_frames(reader, ground_truth, max_gap_s)
@@ -289,7 +289,7 @@ def bag_report(path: str | Path, ground_truth: GroundTruth = GroundTruth(), max_
                refiner=None) -> tuple[dict, list[SequenceResult]]:
     """``(report, results)`` of the bag at ``path`` (see the module doc): the network's pose, the refined one when the
     bag has ``/vlocnet/network_pose``, the retrieval baseline against ``reference`` (a
-    :class:`~vlocnetpp_core.retrieval.ReferenceSet`) and the structure-based one against ``refiner``'s map, on the same frames."""
+    :class:`~vlocnetpp_core.evaluation.retrieval.ReferenceSet`) and the structure-based one against ``refiner``'s map, on the same frames."""
     from vlocnetpp_core.mapping.evaluation import add_structure_baseline
 
     bag = collect_bag(path, ground_truth, max_gap_s, samples, describe=reference is not None, refiner=refiner)
@@ -338,8 +338,8 @@ def ground_truth_of(args: argparse.Namespace) -> GroundTruth:
 
 
 def run(args: argparse.Namespace) -> int:
-    from vlocnetpp_core.checkpoint import MAP_AUTO
-    from vlocnetpp_core.retrieval import open_reference
+    from vlocnetpp_core.evaluation.retrieval import open_reference
+    from vlocnetpp_core.inference.checkpoint import MAP_AUTO
 
     if not (math.isfinite(args.max_gap_s) and args.max_gap_s > 0):
         raise UserError(f"--max-gap-s must be a positive number of seconds, got {args.max_gap_s}")

@@ -32,7 +32,6 @@ from typing import Any
 
 import numpy as np
 
-from vlocnetpp_core import preprocess
 from vlocnetpp_core.bag import messages
 from vlocnetpp_core.bag.bagfile import BagReader
 from vlocnetpp_core.bag.extract_plan import Plan, PlannedFrame, Selection, match_nearest, plan_frames
@@ -52,10 +51,11 @@ from vlocnetpp_core.bag.extract_scan import (
 from vlocnetpp_core.bag.extract_writer import DeepLocWriter, atomic_output_dir, check_output
 from vlocnetpp_core.bag.pose_source import PoseChain
 from vlocnetpp_core.bag.topics import DEFAULT_MAX_GAP_S, DEPTH_TOPIC, GROUND_TRUTH_TOPIC
+from vlocnetpp_core.camera.extrinsics import CameraExtrinsics
+from vlocnetpp_core.camera.intrinsics import Intrinsics
 from vlocnetpp_core.errors import UserError
-from vlocnetpp_core.extrinsics import CameraExtrinsics
+from vlocnetpp_core.inference import preprocess
 from vlocnetpp_core.interrupts import sigterm_as_interrupt
-from vlocnetpp_core.intrinsics import Intrinsics
 
 __all__ = ["ExtractOptions", "ExtractSummary", "extract", "add_arguments", "run"]
 

@@ -18,14 +18,14 @@ from typing import Any
 
 import numpy as np
 
-from vlocnetpp_core import preprocess
 from vlocnetpp_core.bag import messages
 from vlocnetpp_core.bag.bagfile import BagReader
 from vlocnetpp_core.bag.extract_plan import Selection
 from vlocnetpp_core.bag.pose_source import POSE_TYPES, PoseChain, PoseTopicCollector, TfCollector
 from vlocnetpp_core.bag.topics import CAMERA_INFO_TOPIC, DEPTH_TOPIC, GROUND_TRUTH_TOPIC, TF_STATIC_TOPIC, TF_TOPIC
+from vlocnetpp_core.camera.intrinsics import Intrinsics
 from vlocnetpp_core.errors import UserError
-from vlocnetpp_core.intrinsics import Intrinsics
+from vlocnetpp_core.inference import preprocess
 
 DEFAULT_MAX_POSE_GAP_S = 0.5
 DEFAULT_DEPTH_TOLERANCE_S = 0.02

@@ -24,9 +24,9 @@ from pathlib import Path
 import numpy as np
 
 from vlocnetpp_core.bag.extract_plan import PlannedFrame
+from vlocnetpp_core.camera.intrinsics import Intrinsics
 from vlocnetpp_core.data.imageio import BackgroundWriter, write_image
 from vlocnetpp_core.data.pfm import write_pfm
-from vlocnetpp_core.intrinsics import Intrinsics
 from vlocnetpp_core.outputs import atomic_output_dir, check_output_dir
 
 check_output = check_output_dir  # the name extract.py checks its output with before reading the bag

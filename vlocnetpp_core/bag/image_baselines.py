@@ -19,7 +19,7 @@ def describe_frames(reader: BagReader, where: dict[int, tuple[int, int]],
     intrinsics of the latest ``/camera/camera_info``, that of the image's log time included), else None.
     ``DataError`` when the bag has no camera image for one of them, or (with ``refiner``) no camera info before it."""
     from vlocnetpp_core.bag.replay import groups_by_log_time
-    from vlocnetpp_core.retrieval import describe
+    from vlocnetpp_core.evaluation.retrieval import describe
 
     image_topic = next((t for t in IMAGE_TOPICS if t in reader.topics), None)
     if image_topic is None:

@@ -15,9 +15,9 @@ import cv2
 import numpy as np
 from rosbags.typesys import Stores, get_typestore
 
-from vlocnetpp_core import preprocess
+from vlocnetpp_core.camera.intrinsics import Intrinsics
 from vlocnetpp_core.geometry import quat_from_ros, quat_to_ros
-from vlocnetpp_core.intrinsics import Intrinsics
+from vlocnetpp_core.inference import preprocess
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 _T = TYPESTORE.types
@@ -31,7 +31,7 @@ POSE_WITH_COVARIANCE_STAMPED = "geometry_msgs/msg/PoseWithCovarianceStamped"
 TF_MESSAGE = "tf2_msgs/msg/TFMessage"
 
 # Encodings :func:`image` writes: channels and numpy dtype (reading accepts every encoding of
-# ``vlocnetpp_core.preprocess``, the decoder the node uses too).
+# ``vlocnetpp_core.inference.preprocess``, the decoder the node uses too).
 WRITE_ENCODINGS: dict[str, tuple[int, np.dtype]] = {
     "rgb8": (3, np.dtype(np.uint8)),
     "bgr8": (3, np.dtype(np.uint8)),
@@ -83,7 +83,7 @@ def image(ns: int, frame_id: str, array: np.ndarray, encoding: str) -> Any:
 def image_to_array(msg: Any) -> np.ndarray:
     """The pixels of a ``sensor_msgs/Image``: ``(H, W)`` for one channel, else ``(H, W, C)``, in the
     message's own channel order and dtype (a copy; row padding and big-endian data handled by
-    :func:`vlocnetpp_core.preprocess.decode_raw`, which raises ``FrameError``)."""
+    :func:`vlocnetpp_core.inference.preprocess.decode_raw`, which raises ``FrameError``)."""
     return preprocess.decode_raw(msg.data, msg.width, msg.height, msg.step, msg.encoding, bool(msg.is_bigendian))
 
 

@@ -18,7 +18,7 @@ its pose against the map every ``--refine-every``-th frame, as the node's parame
 (refined, propagated or network) pose, ``/vlocnet/network_pose`` the network's own.
 
 In process (default) the images are read in log-time order and given to
-:class:`~vlocnetpp_core.localizer.Localizer` (the node's code path) with the intrinsics of the
+:class:`~vlocnetpp_core.inference.localizer.Localizer` (the node's code path) with the intrinsics of the
 latest ``/camera/camera_info``; the localizer resets its temporal state itself on stamp gaps
 longer than ``--max-gap-s`` (the converter leaves 10 s between sequences). Messages that share a
 log time are handled together, so a frame's camera info or depth is used whatever order the bag
@@ -82,7 +82,7 @@ def output_types(segmentation: bool = True, network_pose: bool = False) -> dict[
 def checkpoint_output_types(checkpoint: str | Path, network_pose: bool = False) -> dict[str, str]:
     """:func:`output_types` of the model of a checkpoint, from its sidecar (the weights are not read);
     raises ``DataError`` naming the file when the sidecar is missing or malformed."""
-    from vlocnetpp_core.checkpoint import checkpoint_paths, read_checkpoint_meta
+    from vlocnetpp_core.inference.checkpoint import checkpoint_paths, read_checkpoint_meta
     from vlocnetpp_core.model import ModelConfig
 
     meta = read_checkpoint_meta(checkpoint)
@@ -146,7 +146,7 @@ def groups_by_log_time(stream: Iterable[tuple[str, int, Any]]) -> Iterator[list[
 
 
 def output_messages(result, image_msg: Any, network_pose: bool = False) -> list[tuple[str, Any]]:
-    """The ``/vlocnet/*`` messages of a :class:`~vlocnetpp_core.localizer.LocalizerResult` with the stamp and frame of
+    """The ``/vlocnet/*`` messages of a :class:`~vlocnetpp_core.inference.localizer.LocalizerResult` with the stamp and frame of
     ``image_msg`` (no segmentation when ``result.mask`` is None: a pose-only model; the network's own pose on
     ``/vlocnet/network_pose`` with ``network_pose``: a localizer refining against a map)."""
     ns, camera = messages.stamp_ns(image_msg), image_msg.header.frame_id
@@ -178,7 +178,7 @@ def replay(bag: str | Path, out: str | Path, localizer, image_topic: str | None 
     """Run ``localizer`` over every image of ``bag`` in log-time order and write ``out`` (see module doc)."""
     from tqdm import tqdm
 
-    from vlocnetpp_core.preprocess import FrameError, depth_to_metres
+    from vlocnetpp_core.inference.preprocess import FrameError, depth_to_metres
 
     summary = ReplaySummary(Path(out))
     start = time.perf_counter()
@@ -282,9 +282,9 @@ def parse_rate(text: str | None) -> float | None:
 
 
 def map_argument(args: argparse.Namespace) -> Path | None:
-    """The keyframe map of ``--map`` (:func:`vlocnetpp_core.checkpoint.resolve_map_path`: ``auto`` without a map beside
+    """The keyframe map of ``--map`` (:func:`vlocnetpp_core.inference.checkpoint.resolve_map_path`: ``auto`` without a map beside
     the checkpoint warns on stderr and gives None), ``--refine-every`` checked."""
-    from vlocnetpp_core.checkpoint import resolve_map_path
+    from vlocnetpp_core.inference.checkpoint import resolve_map_path
 
     if args.refine_every < 1:
         raise UserError(f"--refine-every must be >= 1, got {args.refine_every}")
@@ -306,7 +306,7 @@ def run(args: argparse.Namespace) -> int:
         # The DDS side is a ROS program of its own (vlocnetpp_core never imports ROS): same flags.
         return subprocess.call([*program_command("replay-node"), *bridge_argv(args)])
     else:
-        from vlocnetpp_core.localizer import Localizer
+        from vlocnetpp_core.inference.localizer import Localizer
 
         localizer = Localizer.from_checkpoint(args.checkpoint, device=args.device, max_gap_s=args.max_gap_s, map_path=map_path,
                                               refine_every=args.refine_every)

@@ -132,7 +132,7 @@ def run_bench(settings: BenchSettings, device: str = "cpu", quick: bool = False,
     import torch
 
     from vlocnetpp_core.bench import figures
-    from vlocnetpp_core.checkpoint import init_checkpoint
+    from vlocnetpp_core.inference.checkpoint import init_checkpoint
 
     say = progress or (lambda _msg: None)
     if device.startswith("cuda") and not torch.cuda.is_available():

@@ -112,8 +112,8 @@ def paper_step(config: str, input_size: tuple[int, int] | None, frames: list[np.
 
 def _onnx_paper_step(model: torch.nn.Module, path: Path, device: str, threads: int, result: dict):
     """The ONNX Runtime session of ``model``'s exported step, or None with ``result["onnx_error"]`` set."""
-    from vlocnetpp_core.onnx_backend import OnnxStep
-    from vlocnetpp_core.onnx_export import export_step
+    from vlocnetpp_core.inference.onnx_backend import OnnxStep
+    from vlocnetpp_core.inference.onnx_export import export_step
 
     try:
         start = time.perf_counter()
@@ -168,7 +168,7 @@ def _first_line(err: BaseException) -> str:
 
 
 def _image_tensor(rgb: np.ndarray, size: tuple[int, int], device: str) -> torch.Tensor:
-    from vlocnetpp_core.preprocess import image_tensor, resize_image
+    from vlocnetpp_core.inference.preprocess import image_tensor, resize_image
 
     return image_tensor(resize_image(rgb, size)).to(device)
 
@@ -181,8 +181,8 @@ def lite_step(checkpoint: Path, frames: list[np.ndarray], device: str, threads: 
     finds it. Where the onnx backend cannot run (no ``onnx`` / ``onnxruntime`` package, CUDA
     without onnxruntime-gpu), its entry is None and ``onnx_error`` says why.
     """
-    from vlocnetpp_core.localizer import Localizer
-    from vlocnetpp_core.onnx_export import export_checkpoint
+    from vlocnetpp_core.inference.localizer import Localizer
+    from vlocnetpp_core.inference.onnx_export import export_checkpoint
 
     localizers = {"torch": Localizer.from_checkpoint(checkpoint, device=device, num_threads=threads)}
     result: dict = {"lite_step_onnx": None}

@@ -27,9 +27,9 @@ EVERY = (1, 2)
 
 
 def shipped_model_and_map(map_setting: str = "auto") -> tuple[Path, Path]:
-    """The shipped checkpoint and the keyframe map of ``map_setting`` (:func:`~vlocnetpp_core.checkpoint.resolve_map_path`);
+    """The shipped checkpoint and the keyframe map of ``map_setting`` (:func:`~vlocnetpp_core.inference.checkpoint.resolve_map_path`);
     ``UserError`` saying which is missing."""
-    from vlocnetpp_core.checkpoint import resolve_map_path, shipped_checkpoint
+    from vlocnetpp_core.inference.checkpoint import resolve_map_path, shipped_checkpoint
 
     try:
         checkpoint = shipped_checkpoint()
@@ -45,7 +45,7 @@ def shipped_model_and_map(map_setting: str = "auto") -> tuple[Path, Path]:
 def refined_steps(frames: list[np.ndarray], device: str, threads: int, repetitions: int, warmup: int, map_setting: str = "auto") -> dict:
     """Seconds per ``Localizer.step`` of the shipped model on consecutive ``frames`` (cycled) without refinement and
     refining every k-th frame (k in :data:`EVERY`), interleaved; and the share of frames each published refined."""
-    from vlocnetpp_core.localizer import Localizer
+    from vlocnetpp_core.inference.localizer import Localizer
 
     checkpoint, map_path = shipped_model_and_map(map_setting)
     localizers = {"none": Localizer.from_checkpoint(checkpoint, device=device, num_threads=threads)}

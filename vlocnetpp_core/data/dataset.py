@@ -8,11 +8,11 @@ import numpy as np
 import torch
 
 from vlocnetpp_core import geometry
+from vlocnetpp_core.camera.intrinsics import Intrinsics
 from vlocnetpp_core.classes import IGNORE_INDEX
 from vlocnetpp_core.data.formats import FORMATS
 from vlocnetpp_core.data.sample import DatasetIndex, Frame, mirror_pose
 from vlocnetpp_core.errors import DataError, UserError
-from vlocnetpp_core.intrinsics import Intrinsics
 
 
 def detect_format(path: str | Path) -> str:

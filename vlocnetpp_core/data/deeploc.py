@@ -20,7 +20,7 @@ Layout (``DIR`` is the folder holding ``DeepLoc/``, or the ``DeepLoc`` folder it
 * Depth is looked up in ``DeepLoc_stereo`` next to ``DeepLoc`` (or inside it). PFM holds metres,
   16-bit PNG millimetres.
 * Intrinsics: the ``intrinsics`` argument, else ``intrinsics.json`` at ``DIR`` (or next to the
-  ``DeepLoc`` folder), else :data:`vlocnetpp_core.intrinsics.DEEPLOC_DEFAULT` (approximate ZED
+  ``DeepLoc`` folder), else :data:`vlocnetpp_core.camera.intrinsics.DEEPLOC_DEFAULT` (approximate ZED
   values; DeepLoc publishes none), rescaled when the images are not 1280x720.
 * Poses without an image are skipped and images without a pose ignored; both are counted in
   ``DatasetIndex.notes`` (``vlocnetpp data-info`` prints them).
@@ -36,10 +36,10 @@ from pathlib import Path
 import numpy as np
 
 from vlocnetpp_core import geometry
+from vlocnetpp_core.camera.intrinsics import DEEPLOC_DEFAULT, Intrinsics
 from vlocnetpp_core.data import imageio
 from vlocnetpp_core.data.sample import DatasetIndex, FrameRecord, resolve_intrinsics, sequence_stamps
 from vlocnetpp_core.errors import DataError, UserError
-from vlocnetpp_core.intrinsics import DEEPLOC_DEFAULT, Intrinsics
 
 RATE_HZ = 20.0
 _LAST_INT = re.compile(r"(\d+)(?!.*\d)")

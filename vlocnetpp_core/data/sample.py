@@ -13,9 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
+from vlocnetpp_core.camera.intrinsics import Intrinsics
 from vlocnetpp_core.data import imageio
 from vlocnetpp_core.errors import UserError
-from vlocnetpp_core.intrinsics import Intrinsics
 
 # Stamps are synthesised from the frame order (neither DeepLoc nor 7-Scenes ships any). They
 # increase over a whole split; each sequence starts this many seconds after the previous one

@@ -7,7 +7,7 @@ Layout::
     seq-XX/frame-NNNNNN.depth.png       uint16 millimetres, 0 and 65535 invalid -> metres, 0 invalid
     seq-XX/frame-NNNNNN.pose.txt        4x4 camera-to-world matrix T_wc (metres)
 
-Intrinsics default to :data:`vlocnetpp_core.intrinsics.SEVEN_SCENES_DEFAULT` (focal 585,
+Intrinsics default to :data:`vlocnetpp_core.camera.intrinsics.SEVEN_SCENES_DEFAULT` (focal 585,
 principal point (320, 240)); stamps are 30 Hz from the frame order. Each ``seq-XX`` is one
 sequence with id ``XX``.
 
@@ -24,10 +24,10 @@ from pathlib import Path
 import numpy as np
 
 from vlocnetpp_core import geometry
+from vlocnetpp_core.camera.intrinsics import SEVEN_SCENES_DEFAULT, Intrinsics
 from vlocnetpp_core.data import imageio
 from vlocnetpp_core.data.sample import DatasetIndex, FrameRecord, resolve_intrinsics, sequence_stamps
 from vlocnetpp_core.errors import DataError, UserError
-from vlocnetpp_core.intrinsics import SEVEN_SCENES_DEFAULT, Intrinsics
 
 RATE_HZ = 30.0
 SPLIT_FILES = {"train": "TrainSplit.txt", "test": "TestSplit.txt"}

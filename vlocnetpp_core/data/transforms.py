@@ -25,7 +25,7 @@ import cv2
 import numpy as np
 
 from vlocnetpp_core.data.sample import Frame, mirror_pose
-from vlocnetpp_core.preprocess import resize_image, resize_nearest
+from vlocnetpp_core.inference.preprocess import resize_image, resize_nearest
 
 Clip = list[Frame]
 
@@ -34,7 +34,7 @@ GREY_WEIGHTS = np.array([0.299, 0.587, 0.114])  # RGB -> grey (ITU-R BT.601 luma
 
 def resize_frame(frame: Frame, width: int, height: int) -> Frame:
     """Resize to ``width x height`` (aspect may change; intrinsics follow) with the localizer's rules
-    (:func:`vlocnetpp_core.preprocess.resize_image`, :func:`~vlocnetpp_core.preprocess.resize_nearest`)."""
+    (:func:`vlocnetpp_core.inference.preprocess.resize_image`, :func:`~vlocnetpp_core.inference.preprocess.resize_nearest`)."""
     h, w = frame.image.shape[:2]
     if (w, h) == (width, height):
         return frame

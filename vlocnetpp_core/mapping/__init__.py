@@ -4,7 +4,7 @@
 * :mod:`.keyframe_map`: the map (keyframes with pose, intrinsics, features and their 3D points), its file.
 * :mod:`.build`: ``vlocnetpp map build``: a map from datasets (3D points from depth, else triangulated).
 * :mod:`.pnp`: PnP with RANSAC, non-linear refinement and the covariance of the solution.
-* :mod:`.refiner`: the refinement the :class:`~vlocnetpp_core.localizer.Localizer` runs per frame (keyframes
+* :mod:`.refiner`: the refinement the :class:`~vlocnetpp_core.inference.localizer.Localizer` runs per frame (keyframes
   near a pose prior, checks, fallback) and the structure-based baseline (keyframes by image retrieval).
 
 Conventions are the package's (docs/architecture.md): poses camera-to-world ``T_map,cam`` as ``t (3,)``

@@ -128,7 +128,7 @@ PARTS = ("t", "q", "intrinsics", "image_sizes", "uv", "points", "descriptors", "
 
 def _sequence_parts(sequence, features: FeatureConfig) -> dict[str, list]:
     """The map's arrays (:data:`PARTS`, one entry per keyframe) of one keyframe sequence."""
-    from vlocnetpp_core.retrieval import describe
+    from vlocnetpp_core.evaluation.retrieval import describe
 
     extractor = FeatureExtractor(features)
     frames = sequence.frames()

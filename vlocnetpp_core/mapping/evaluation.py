@@ -16,7 +16,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from vlocnetpp_core import geometry
-from vlocnetpp_core.metrics import DEFAULT_THRESHOLDS, evaluate_sequences
+from vlocnetpp_core.evaluation.metrics import DEFAULT_THRESHOLDS, evaluate_sequences
 
 STRUCTURE_NAME = "structure-based"
 STRUCTURE_METHOD = ("the 4 map keyframes most similar to the image (gradient thumbnails), SIFT ratio-test matches, "
@@ -36,7 +36,7 @@ class RefinedTrack:
     sigma: list = field(default_factory=list)
 
     def add(self, out) -> None:
-        """Record a :class:`~vlocnetpp_core.localizer.LocalizerResult`."""
+        """Record a :class:`~vlocnetpp_core.inference.localizer.LocalizerResult`."""
         self.t.append(out.t)
         self.q.append(out.q)
         self.source.append(out.source)

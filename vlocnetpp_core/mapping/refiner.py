@@ -1,6 +1,6 @@
 """Refinement of a pose prior against the keyframe map, and the structure-based baseline (no network).
 
-:meth:`Refiner.refine` (what the :class:`~vlocnetpp_core.localizer.Localizer` runs): the keyframes near the
+:meth:`Refiner.refine` (what the :class:`~vlocnetpp_core.inference.localizer.Localizer` runs): the keyframes near the
 odometry's prediction from the last refined pose (when there is one) and near the network's pose are matched
 with the frame's SIFT features (ratio test, per keyframe; of several matches of one keypoint the closest is
 kept), and PnP (:mod:`.pnp`) solves for the pose. It is accepted only when it has at least ``min_inliers``
@@ -9,7 +9,7 @@ inliers, an inlier reprojection error of at most ``max_rms_px``, and agrees with
 else the status says why and the caller keeps the network's pose.
 
 :meth:`Refiner.locate` is the structure-based baseline: the same matching and PnP with the keyframes most similar
-to the image (gradient thumbnails, :mod:`vlocnetpp_core.retrieval`) instead of a prior, and the most similar
+to the image (gradient thumbnails, :mod:`vlocnetpp_core.evaluation.retrieval`) instead of a prior, and the most similar
 keyframe's pose when PnP finds fewer than ``min_inliers`` inliers (hloc's recipe, without a network).
 """
 
@@ -68,7 +68,7 @@ class Refiner:
     """PnP against a :class:`KeyframeMap`. :meth:`extract` may run on another thread than the rest (one at a time)."""
 
     def __init__(self, keyframe_map: KeyframeMap, config: RefinerConfig = RefinerConfig()):
-        from vlocnetpp_core.retrieval import ReferenceSet
+        from vlocnetpp_core.evaluation.retrieval import ReferenceSet
 
         self.map = keyframe_map
         self.config = config
@@ -84,7 +84,7 @@ class Refiner:
         return self._extractor(grey)
 
     def prepare(self, image: np.ndarray, intrinsics) -> tuple[np.ndarray, np.ndarray]:
-        """``(grey, K)``: an ``(H, W, 3)`` RGB / ``(H, W)`` image with its :class:`~vlocnetpp_core.intrinsics.Intrinsics`
+        """``(grey, K)``: an ``(H, W, 3)`` RGB / ``(H, W)`` image with its :class:`~vlocnetpp_core.camera.intrinsics.Intrinsics`
         as grey, shrunk to the width of the map's keyframes where it is wider (features cost less, match alike), and
         its ``K (3, 3)`` at that size."""
         import cv2
@@ -143,8 +143,8 @@ class Refiner:
         return self.map.t[keyframes[0]].copy(), self.map.q[keyframes[0]].copy(), result
 
     def locate_image(self, image: np.ndarray, intrinsics, thumbnail: np.ndarray) -> tuple[np.ndarray, np.ndarray, Refinement]:
-        """:meth:`locate` of an ``(H, W, 3)`` RGB image with its :class:`~vlocnetpp_core.intrinsics.Intrinsics` and
-        retrieval descriptor ``thumbnail (288,)`` (:func:`vlocnetpp_core.retrieval.describe` of it)."""
+        """:meth:`locate` of an ``(H, W, 3)`` RGB image with its :class:`~vlocnetpp_core.camera.intrinsics.Intrinsics` and
+        retrieval descriptor ``thumbnail (288,)`` (:func:`vlocnetpp_core.evaluation.retrieval.describe` of it)."""
         grey, K = self.prepare(image, intrinsics)
         return self.locate(self.extract(grey), thumbnail, K)
 

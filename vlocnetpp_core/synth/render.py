@@ -24,7 +24,7 @@ import cv2
 import numpy as np
 
 from vlocnetpp_core import geometry
-from vlocnetpp_core.intrinsics import Intrinsics
+from vlocnetpp_core.camera.intrinsics import Intrinsics
 from vlocnetpp_core.synth.campus import Campus, DynamicObject
 from vlocnetpp_core.synth.layout import HILLS_RADIUS
 from vlocnetpp_core.synth.lighting import DEFAULT_LIGHTING, Lighting

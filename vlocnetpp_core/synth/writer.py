@@ -25,11 +25,11 @@ from pathlib import Path
 
 import numpy as np
 
+from vlocnetpp_core.camera.intrinsics import Intrinsics
 from vlocnetpp_core.classes import colorize
 from vlocnetpp_core.data.imageio import BackgroundWriter, write_image
 from vlocnetpp_core.data.pfm import write_pfm
 from vlocnetpp_core.errors import UserError
-from vlocnetpp_core.intrinsics import Intrinsics
 from vlocnetpp_core.outputs import atomic_output_dir
 from vlocnetpp_core.synth.campus import load_campus
 from vlocnetpp_core.synth.drive import MAX_LANE_OFFSET_M, plan_visit

@@ -17,8 +17,8 @@ def export_weights(recipe, out: Path) -> Path:
     validate, the pose variances come from the ``calibration.pose`` stage and the odometry variances
     from the ``calibration.odometry`` stage (their ``best`` sidecars).
     """
-    from vlocnetpp_core.checkpoint import load_checkpoint, save_checkpoint
-    from vlocnetpp_core.retrieval import ReferenceSet, open_reference, reference_of
+    from vlocnetpp_core.evaluation.retrieval import ReferenceSet, open_reference, reference_of
+    from vlocnetpp_core.inference.checkpoint import load_checkpoint, save_checkpoint
     from vlocnetpp_core.training.recipe import dataset_path
 
     spec = recipe.export  # checked by load_recipe

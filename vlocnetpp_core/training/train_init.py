@@ -21,7 +21,7 @@ def load_inits(model, criterion, paths: list[str], stage: str, log) -> list[dict
     A tensor that a later checkpoint gives too is taken from the later one, and only the tensors
     taken must fit this model config: an ``mtl`` checkpoint whose odometry head has another shape can
     give every other stream when a later ``stl-vo`` checkpoint gives the odometry."""
-    from vlocnetpp_core.checkpoint import read_checkpoint_tensors
+    from vlocnetpp_core.inference.checkpoint import read_checkpoint_tensors
     from vlocnetpp_core.training.train_state import load_criterion_weights
 
     own = model.state_dict()

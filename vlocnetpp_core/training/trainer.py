@@ -151,7 +151,7 @@ class Trainer:
         """Weights, optimiser, loss weights, RNG, step and best score of the run in ``--out``; ``--lr`` steps the rate.
         ``fresh`` (``--restart``, a warm restart): the optimiser state (Adam's moments) and the learned loss weights start
         anew, as at the start of the run, and only the weights, RNG, step and best score come back."""
-        from vlocnetpp_core.checkpoint import read_checkpoint_tensors
+        from vlocnetpp_core.inference.checkpoint import read_checkpoint_tensors
         from vlocnetpp_core.training.train_state import load_train_state
 
         c, out = self.config, self.out
@@ -264,7 +264,7 @@ class Trainer:
 
     def save(self, is_best: bool) -> None:
         """``last`` (and ``best``) checkpoints with their sidecar, and the resumable state, atomically."""
-        from vlocnetpp_core.checkpoint import save_checkpoint
+        from vlocnetpp_core.inference.checkpoint import save_checkpoint
         from vlocnetpp_core.training.train_state import save_train_state
 
         meta = {"training": {**self.summary(), "step": self.step}, "intrinsics": self.train_index.intrinsics.resized(*self.size).to_dict()}

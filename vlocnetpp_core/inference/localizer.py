@@ -3,7 +3,7 @@ ROS node, ``vlocnetpp evaluate`` and bag replay, so offline and online results a
 
 Per frame (:meth:`Localizer.step`):
 
-* The image (any size, one of :data:`~vlocnetpp_core.preprocess.IMAGE_ENCODINGS`) is resized to
+* The image (any size, one of :data:`~vlocnetpp_core.inference.preprocess.IMAGE_ENCODINGS`) is resized to
   the network input size of the checkpoint, anisotropically when the aspect ratio differs (no
   crop), with the intrinsics scaled by :meth:`Intrinsics.resized`. Intrinsics given with the frame
   describe the camera image (any resolution with the same field of view); without them the
@@ -12,7 +12,7 @@ Per frame (:meth:`Localizer.step`):
   semantic Res4f / Res5c features kept from the last call (the model's ``StreamState``) instead
   of recomputing the previous frame.
 * Backends: ``torch`` (default) runs ``VLocNetPP.step``; ``onnx`` runs the same step exported to
-  ONNX (:mod:`vlocnetpp_core.onnx_export`) with ONNX Runtime (:mod:`vlocnetpp_core.onnx_backend`),
+  ONNX (:mod:`vlocnetpp_core.inference.onnx_export`) with ONNX Runtime (:mod:`vlocnetpp_core.inference.onnx_backend`),
   faster on CPU (docs/performance.md); outputs agree to about 1e-5.
 * Outputs: global pose ``T_map,cam``; relative pose ``T_rel = T_{k-1}^{-1} T_k``; accumulated
   odometry ``T_odom,k = T_odom,k-1 T_rel,k`` (identity at construction, in the ``odom`` frame);
@@ -47,10 +47,10 @@ import numpy as np
 import torch
 
 from vlocnetpp_core import geometry
-from vlocnetpp_core.checkpoint import calibration_variances, checkpoint_paths, load_checkpoint
+from vlocnetpp_core.camera.intrinsics import Intrinsics
 from vlocnetpp_core.errors import UserError
-from vlocnetpp_core.intrinsics import Intrinsics
-from vlocnetpp_core.preprocess import FrameError, network_input, to_rgb
+from vlocnetpp_core.inference.checkpoint import calibration_variances, checkpoint_paths, load_checkpoint
+from vlocnetpp_core.inference.preprocess import FrameError, network_input, to_rgb
 
 BACKENDS = ("torch", "onnx")
 RESET_REASONS = ("start", "request", "stamp_backwards", "gap", "resolution_change", "intrinsics_change", "nan_output")
@@ -96,7 +96,7 @@ class Localizer:
         """``backend``: ``"torch"`` runs ``model.step`` with the process's torch threads (set by the program:
         :func:`vlocnetpp_core.threads.use_threads`); ``"onnx"`` runs the exported step with ONNX Runtime in
         a session of ``num_threads`` threads (:mod:`vlocnetpp_core.threads`; ``onnx_path`` if it matches these
-        weights, else a cached export; see :mod:`vlocnetpp_core.onnx_backend`). ``refiner``: a
+        weights, else a cached export; see :mod:`vlocnetpp_core.inference.onnx_backend`). ``refiner``: a
         :class:`~vlocnetpp_core.mapping.refiner.Refiner` to refine the global pose against its map every
         ``refine_every``-th frame (:mod:`vlocnetpp_core.mapping.stream`); None: the network's pose."""
         if backend not in BACKENDS:
@@ -106,7 +106,7 @@ class Localizer:
         self.backend = backend
         self._step_fn = self.model.step
         if backend == "onnx":
-            from vlocnetpp_core.onnx_backend import onnx_step_for
+            from vlocnetpp_core.inference.onnx_backend import onnx_step_for
 
             self._step_fn = onnx_step_for(self.model, meta, self.device, num_threads, next_to=onnx_path)
         self.meta = meta
@@ -130,7 +130,7 @@ class Localizer:
     @classmethod
     def from_checkpoint(cls, path: str | Path, device: str = "cpu", max_gap_s: float = 1.0, num_threads: int = 0,
                         backend: str = "torch", map_path: str | Path | None = None, refine_every: int = 1) -> Localizer:
-        """Load ``NAME.safetensors`` + ``NAME.json`` (see :mod:`vlocnetpp_core.checkpoint`); the onnx
+        """Load ``NAME.safetensors`` + ``NAME.json`` (see :mod:`vlocnetpp_core.inference.checkpoint`); the onnx
         backend uses ``NAME.onnx`` next to them when it was exported from these weights. ``map_path``: a keyframe
         map (``vlocnetpp map build``) to refine against; None: no refinement."""
         refiner = None

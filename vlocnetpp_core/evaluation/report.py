@@ -1,9 +1,9 @@
 """The evaluation report shared by ``evaluate``, ``evaluate-bag`` and ``demo``: flags, table, baseline, files.
 
-A report is the dict of :func:`vlocnetpp_core.metrics.evaluate_sequences` (``overall`` and
+A report is the dict of :func:`vlocnetpp_core.evaluation.metrics.evaluate_sequences` (``overall`` and
 ``per_sequence``, each with ``pose``, ``odometry``, ``segmentation``, ``timing``) plus ``meta``
 and, when a retrieval reference was given, ``baseline``: the same pose metrics for the
-nearest-neighbour retrieval baseline (:mod:`vlocnetpp_core.retrieval`) on the same frames, and
+nearest-neighbour retrieval baseline (:mod:`vlocnetpp_core.evaluation.retrieval`) on the same frames, and
 whether the network beats it (``network_beats_baseline``: translation and rotation medians). A
 report of a model without segmentation (pose-only) has no ``segmentation`` entries but a
 ``segmentation_note`` saying why (:func:`without_segmentation`); its table has no segmentation columns.
@@ -21,10 +21,10 @@ from pathlib import Path
 import numpy as np
 
 from vlocnetpp_core.errors import UserError
-from vlocnetpp_core.metrics import DEFAULT_THRESHOLDS, SequenceResult, accuracy_key, evaluate_sequences
+from vlocnetpp_core.evaluation.metrics import DEFAULT_THRESHOLDS, SequenceResult, accuracy_key, evaluate_sequences
 
 BASELINE_NAME = "retrieval"
-BASELINE_METHOD = "pose of the nearest reference image (gradient thumbnails, cosine similarity; vlocnetpp_core.retrieval)"
+BASELINE_METHOD = "pose of the nearest reference image (gradient thumbnails, cosine similarity; vlocnetpp_core.evaluation.retrieval)"
 
 
 # --------------------------------------------------------------------------- flags
@@ -114,9 +114,9 @@ def without_segmentation(report: dict, note: str) -> dict:
 
 def add_baseline(report: dict, results: Sequence[SequenceResult], descriptors: Sequence[np.ndarray], reference,
                  thresholds: Sequence[tuple[float, float]] = DEFAULT_THRESHOLDS) -> dict:
-    """Score the retrieval baseline (``reference``: a :class:`~vlocnetpp_core.retrieval.ReferenceSet`) on the
+    """Score the retrieval baseline (``reference``: a :class:`~vlocnetpp_core.evaluation.retrieval.ReferenceSet`) on the
     frames of ``results`` (``descriptors[k] (N_k, D)``) and store it as ``report["baseline"]``."""
-    from vlocnetpp_core.retrieval import retrieval_results
+    from vlocnetpp_core.evaluation.retrieval import retrieval_results
 
     # pose metrics only (no odometry: the segment lengths are a placeholder)
     scored = evaluate_sequences(retrieval_results(reference, results, descriptors), thresholds, [1.0])
@@ -246,7 +246,7 @@ def write_json(path: str | Path, data: dict) -> None:
 
 def write_trajectories(folder: str | Path, results: Iterable[SequenceResult]) -> list[Path]:
     """``<folder>/<seq>/{ground_truth,global_pose,odometry}.tum`` (odometry only when predicted)."""
-    from vlocnetpp_core.trajectory import write_tum
+    from vlocnetpp_core.evaluation.trajectory import write_tum
 
     written = []
     for r in results:
@@ -268,7 +268,7 @@ def write_outputs(report: dict, results: list[SequenceResult], class_names: Sequ
         write_trajectories(trajectories, results)
         print(f"trajectories (TUM): {trajectories}")
     if plots:
-        from vlocnetpp_core.plots import write_plots
+        from vlocnetpp_core.evaluation.plots import write_plots
 
         write_plots(plots, results, class_names)
         print(f"plots: {plots}")

@@ -15,8 +15,8 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from vlocnetpp_core.classes import CLASS_NAMES, colorize
-from vlocnetpp_core.metrics import SequenceResult, pose_errors
-from vlocnetpp_core.trajectory import Trajectory
+from vlocnetpp_core.evaluation.metrics import SequenceResult, pose_errors
+from vlocnetpp_core.evaluation.trajectory import Trajectory
 
 AXIS_NAMES = ("x", "y", "z")
 

@@ -1,20 +1,20 @@
 """``vlocnetpp evaluate``: run a checkpoint over a dataset split frame by frame and score it.
 
-Every sequence is streamed through :class:`vlocnetpp_core.localizer.Localizer`, the code path of
+Every sequence is streamed through :class:`vlocnetpp_core.inference.localizer.Localizer`, the code path of
 the ROS node: raw RGB frames in, one ``step`` per frame, the temporal state reset at each sequence
 start. Per frame the global pose, the predicted relative pose, the class-id mask and the wall time
-of ``step`` are recorded; :func:`vlocnetpp_core.metrics.evaluate_sequences` turns them into the
+of ``step`` are recorded; :func:`vlocnetpp_core.evaluation.metrics.evaluate_sequences` turns them into the
 report (pose, KITTI-style odometry, segmentation, timing; see ``metrics``), which is printed as a
-table and optionally written as JSON, TUM trajectories and plots (``vlocnetpp_core.report``).
+table and optionally written as JSON, TUM trajectories and plots (``vlocnetpp_core.evaluation.report``).
 
-Beside the network, the nearest-neighbour retrieval baseline (``vlocnetpp_core.retrieval``) is
+Beside the network, the nearest-neighbour retrieval baseline (``vlocnetpp_core.evaluation.retrieval``) is
 scored on the same frames: the pose of the most similar image of ``--reference`` (default: the
 training split of ``--data``), as a row under the table and as ``baseline`` in the JSON.
 
 Segmentation is scored at the dataset image resolution: the localizer brings its class-id mask
 back to the size of the image it was given (nearest neighbour), as the node publishes it. A pose-only
 checkpoint (no semantic stream) has no mask: its report has no ``segmentation`` entries and the table
-no segmentation columns (:func:`vlocnetpp_core.report.without_segmentation`).
+no segmentation columns (:func:`vlocnetpp_core.evaluation.report.without_segmentation`).
 """
 
 from __future__ import annotations
@@ -27,8 +27,8 @@ import numpy as np
 from vlocnetpp_core.classes import CLASS_NAMES
 from vlocnetpp_core.data.formats import FORMATS
 from vlocnetpp_core.errors import UserError
-from vlocnetpp_core.metrics import SequenceRecorder, SequenceResult, evaluate_sequences
-from vlocnetpp_core.report import (
+from vlocnetpp_core.evaluation.metrics import SequenceRecorder, SequenceResult, evaluate_sequences
+from vlocnetpp_core.evaluation.report import (
     add_baseline,
     add_report_arguments,
     check_report_args,
@@ -84,15 +84,15 @@ def run_localizer(localizer, index, max_frames: int | None = None, samples: int 
 
     The temporal state is reset at each sequence start. Frames the localizer rejects
     (``FrameError``, e.g. non-finite outputs) are left out, as the node drops them. With ``describe`` the
-    retrieval descriptors of the frames are kept (:func:`vlocnetpp_core.retrieval.describe`); with ``structure``
+    retrieval descriptors of the frames are kept (:func:`vlocnetpp_core.evaluation.retrieval.describe`); with ``structure``
     (a :class:`~vlocnetpp_core.mapping.refiner.Refiner`) the structure-based baseline runs on the same frames.
     ``ms`` is the localizer's own wall time of ``step`` (decoding the dataset files is not included).
     """
     from tqdm import tqdm
 
+    from vlocnetpp_core.evaluation.retrieval import describe as describe_image
+    from vlocnetpp_core.inference.preprocess import FrameError
     from vlocnetpp_core.mapping.evaluation import RefinedTrack
-    from vlocnetpp_core.preprocess import FrameError
-    from vlocnetpp_core.retrieval import describe as describe_image
 
     ranges = [r if max_frames is None else r[:max_frames] for r in index.sequences]
     bar = tqdm(total=sum(len(r) for r in ranges), unit="frame", desc="evaluate", disable=not progress, dynamic_ncols=True)
@@ -150,7 +150,7 @@ def run(args: argparse.Namespace) -> int:
     thresholds, lengths = check_report_args(args)
 
     from vlocnetpp_core.data import open_dataset
-    from vlocnetpp_core.localizer import Localizer
+    from vlocnetpp_core.inference.localizer import Localizer
     from vlocnetpp_core.mapping.evaluation import add_refined, add_structure_baseline
     from vlocnetpp_core.model.stages import TASK_NAMES
 
@@ -199,7 +199,7 @@ def _reference(args: argparse.Namespace, format: str):
     """The retrieval reference: ``--reference``, else the train split of ``--data`` when another split is
     evaluated and a train split exists; None otherwise."""
     from vlocnetpp_core.data.dataset import available_splits
-    from vlocnetpp_core.retrieval import open_reference
+    from vlocnetpp_core.evaluation.retrieval import open_reference
 
     if args.reference:
         return open_reference(args.reference, progress=not args.no_progress)

@@ -13,7 +13,7 @@ quaternion ``q = (w, x, y, z)``, ``w >= 0`` (docs/conventions.md, Poses and fram
 * Twist (body frame, linear m/s then angular rad/s): ``V_base = Ad(T_base,camera) V_camera``.
 
 Covariance convention (6x6, ROS order x, y, z, rotation about x, y, z): that of
-:class:`~vlocnetpp_core.localizer.Localizer`, whose variances are the validation errors measured
+:class:`~vlocnetpp_core.inference.localizer.Localizer`, whose variances are the validation errors measured
 by ``vlocnetpp train`` (``trainer._pose_residual``): for a pose ``(p, R)`` of a frame in a parent
 frame the error is ``(dp, dtheta)`` with ``p_est = p_true + dp``, ``dp`` in the **parent** frame
 (map or odom; metres), and ``R_est = R_true Exp(dtheta)``, ``dtheta`` a rotation vector about the
@@ -41,7 +41,7 @@ from vlocnetpp_core import geometry
 from vlocnetpp_core.errors import UserError
 
 if TYPE_CHECKING:  # an annotation only: extract (which reads extrinsics) does not load the localizer
-    from vlocnetpp_core.localizer import LocalizerResult
+    from vlocnetpp_core.inference.localizer import LocalizerResult
 
 QUAT_NORM_TOLERANCE = 1e-3  # |‖q‖ - 1| accepted in the parameter (then normalised): 3-decimal quaternions pass
 IDENTITY_VALUES = (0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)  # x, y, z, qw, qx, qy, qz

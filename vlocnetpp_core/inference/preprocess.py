@@ -29,7 +29,7 @@ import cv2
 import numpy as np
 import torch
 
-from vlocnetpp_core.intrinsics import Intrinsics
+from vlocnetpp_core.camera.intrinsics import Intrinsics
 
 # Colour encodings the localizer accepts: channels and the cv2 conversion to RGB (None: already RGB).
 IMAGE_ENCODINGS: dict[str, tuple[int, int | None]] = {

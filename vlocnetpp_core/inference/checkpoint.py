@@ -37,9 +37,9 @@ from typing import Any
 import numpy as np
 import torch
 
+from vlocnetpp_core.camera.intrinsics import DEEPLOC_DEFAULT, Intrinsics
 from vlocnetpp_core.classes import CLASS_COLORS, CLASS_NAMES
 from vlocnetpp_core.errors import DataError
-from vlocnetpp_core.intrinsics import DEEPLOC_DEFAULT, Intrinsics
 
 FORMAT = "vlocnetpp-checkpoint"
 VERSION = 1
@@ -241,7 +241,7 @@ def shipped_checkpoint() -> Path:
         candidates.append(Path(get_package_share_directory("vlocnetpp_ros")) / SHIPPED_MODEL)
     except Exception:  # PackageNotFoundError, or ament_index not importable
         pass
-    source = Path(__file__).resolve().parents[1]
+    source = Path(__file__).resolve().parents[2]
     if (source / "package.xml").is_file():  # a source checkout (editable install)
         candidates.append(source / SHIPPED_MODEL)
     for path in candidates:

@@ -33,8 +33,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from vlocnetpp_core.classes import CLASS_NAMES, IGNORE_INDEX
+from vlocnetpp_core.evaluation.trajectory import Trajectory, accumulate_odometry, align_trajectory
 from vlocnetpp_core.geometry import pose_to_matrix
-from vlocnetpp_core.trajectory import Trajectory, accumulate_odometry, align_trajectory
 
 DEFAULT_THRESHOLDS: tuple[tuple[float, float], ...] = ((0.05, 5.0), (0.5, 5.0))
 DEFAULT_LENGTH_FRACTIONS: tuple[float, ...] = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8)

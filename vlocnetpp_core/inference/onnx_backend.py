@@ -1,6 +1,6 @@
-"""ONNX Runtime backend of the :class:`~vlocnetpp_core.localizer.Localizer` (``backend="onnx"``).
+"""ONNX Runtime backend of the :class:`~vlocnetpp_core.inference.localizer.Localizer` (``backend="onnx"``).
 
-:class:`OnnxStep` runs the graph written by :mod:`vlocnetpp_core.onnx_export` behind the same call
+:class:`OnnxStep` runs the graph written by :mod:`vlocnetpp_core.inference.onnx_export` behind the same call
 as ``VLocNetPP.step(image, state, K, depth) -> (StepOutput, StreamState)``, so the Localizer's
 code path is the same for both backends (only the heads the Localizer reads are filled; ``taps``
 stay empty; ``seg_logits`` stays None for the graph of a pose-only model, which has no such output).
@@ -31,8 +31,8 @@ import numpy as np
 import torch
 
 from vlocnetpp_core.errors import DataError, UserError, require
+from vlocnetpp_core.inference.onnx_export import export_step, read_metadata
 from vlocnetpp_core.model import StepOutput, StreamState
-from vlocnetpp_core.onnx_export import export_step, read_metadata
 from vlocnetpp_core.threads import resolve_threads
 
 

@@ -15,7 +15,7 @@ inputs                       shape                        meaning
 ============================ ============================ =============================================
 
 A model without a depth head (``warping`` off, or a pose-only model) never reads ``depth`` and
-``use_depth``, and the exporter leaves them out of its graph; :class:`~vlocnetpp_core.onnx_backend.OnnxStep`
+``use_depth``, and the exporter leaves them out of its graph; :class:`~vlocnetpp_core.inference.onnx_backend.OnnxStep`
 feeds only the inputs a graph has.
 
 Outputs: ``xyz (1, 3)``, ``quat (1, 4)``, ``rel_xyz (1, 3)``, ``rel_quat (1, 4)``, ``seg_logits
@@ -166,7 +166,7 @@ def export_step(model: nn.Module, out: str | Path, weights_id: str | None = None
 
 def export_checkpoint(checkpoint: str | Path, out: str | Path) -> Path:
     """Load a checkpoint (``NAME.safetensors`` + ``NAME.json``) and export its streaming step to ``out``."""
-    from vlocnetpp_core.checkpoint import load_checkpoint
+    from vlocnetpp_core.inference.checkpoint import load_checkpoint
 
     model, meta = load_checkpoint(checkpoint)
     return export_step(model, out, weights_id=meta.get("weights_id"))
