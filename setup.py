@@ -14,7 +14,10 @@ setup(
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
         (f"share/{PACKAGE}/config", sorted(glob("config/*.yaml") + glob("config/*.xml"))),
-        (f"share/{PACKAGE}/models", sorted(glob("models/*.safetensors") + glob("models/*.json") + glob("models/*.npz"))),
+        (
+            f"share/{PACKAGE}/models",
+            sorted(glob("models/*.safetensors") + glob("models/*.json") + glob("models/*.npz")),
+        ),
     ],
     install_requires=["setuptools"],
     extras_require={"onnx": ["onnx", "onnxruntime"]},  # backend: onnx, export-onnx (versions: requirements.txt)

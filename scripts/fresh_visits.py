@@ -31,11 +31,15 @@ ROOT = Path(__file__).resolve().parents[1]
 # 0 trains, 11 validates the shipped model; 101, 7, 23, 42 ranked the recipe (docs/results.md); 5, 202 the tests' visits;
 # the refinement's verdict of 2026-12-20 (docs/results.md): never drawn again, so the next verdict is on other visits
 SPENT = {0, 5, 7, 11, 23, 42, 101, 202, 307008, 445811, 936886, 733135, 107868, 370004, 177925, 600629}
-COLUMNS = [("t [m]", "pose", "median_translation_m", 1, "{:.3f}"), ("R [deg]", "pose", "median_rotation_deg", 1, "{:.2f}"),
-           ("< 0.1 m, 1 deg [%]", "pose", "accuracy_0.1m_1deg", 100, "{:.1f}"),
-           ("> 0.5 m or 5 deg [%]", "pose", "accuracy_0.5m_5deg", -100, "{:.2f}"),
-           ("VO t [%]", "odometry", "translation_error_percent", 1, "{:.2f}"),
-           ("VO R [deg/m]", "odometry", "rotation_error_deg_per_m", 1, "{:.3f}"), ("mIoU [%]", "segmentation", "miou", 100, "{:.1f}")]
+COLUMNS = [
+    ("t [m]", "pose", "median_translation_m", 1, "{:.3f}"),
+    ("R [deg]", "pose", "median_rotation_deg", 1, "{:.2f}"),
+    ("< 0.1 m, 1 deg [%]", "pose", "accuracy_0.1m_1deg", 100, "{:.1f}"),
+    ("> 0.5 m or 5 deg [%]", "pose", "accuracy_0.5m_5deg", -100, "{:.2f}"),
+    ("VO t [%]", "odometry", "translation_error_percent", 1, "{:.2f}"),
+    ("VO R [deg/m]", "odometry", "rotation_error_deg_per_m", 1, "{:.3f}"),
+    ("mIoU [%]", "segmentation", "miou", 100, "{:.1f}"),
+]
 WORSE_IS_LOWER = {"accuracy_0.1m_1deg", "miou"}
 
 
@@ -43,11 +47,20 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--seeds", type=int, default=8, metavar="N", help="visit seeds to draw at random (default 8)")
     p.add_argument("--seed", type=int, action="append", default=[], help="a given visit seed instead (repeatable)")
-    p.add_argument("--checkpoint", action="append", default=[], metavar="[LABEL=]CKPT",
-                   help="checkpoint to score (repeatable; default shipped=models/vlocnetpp_lite.safetensors)")
-    p.add_argument("--map", default="models/vlocnetpp_lite.map.npz", help="keyframe map for every checkpoint ('' for none)")
+    p.add_argument(
+        "--checkpoint",
+        action="append",
+        default=[],
+        metavar="[LABEL=]CKPT",
+        help="checkpoint to score (repeatable; default shipped=models/vlocnetpp_lite.safetensors)",
+    )
+    p.add_argument(
+        "--map", default="models/vlocnetpp_lite.map.npz", help="keyframe map for every checkpoint ('' for none)"
+    )
     p.add_argument("--refine-every", type=int, default=1, metavar="K", help="evaluate --refine-every (default 1)")
-    p.add_argument("--reference", default="models/vlocnetpp_lite.reference.npz", help="retrieval reference (.npz or dataset)")
+    p.add_argument(
+        "--reference", default="models/vlocnetpp_lite.reference.npz", help="retrieval reference (.npz or dataset)"
+    )
     p.add_argument("--test-loops", type=int, default=3, help="test loops per seed (default 3)")
     p.add_argument("--frames-per-loop", type=int, default=175, help="frames per loop (default 175)")
     p.add_argument("--out", default="runs/fresh-visits", help="folder of the rendered loops, reports and table")
@@ -55,8 +68,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     args = p.parse_args(argv)
     spent = sorted(SPENT & set(args.seed))
     if spent:
-        print(f"note: seeds {spent} were used before (SPENT): not fresh; fine to re-run a recorded verdict, not for a new one",
-              file=sys.stderr)
+        print(
+            f"note: seeds {spent} were used before (SPENT): not fresh; fine to re-run a recorded verdict, not for a new one",
+            file=sys.stderr,
+        )
     return args
 
 
@@ -81,15 +96,42 @@ def score(args: argparse.Namespace, seed: int, label: str, checkpoint: str) -> d
     data = out / f"seed{seed}"
     if not data.is_dir():
         print(f"rendering visit seed {seed}", file=sys.stderr)
-        vlocnetpp("synth", str(data), "--seed", str(seed), "--loops", "0", "--test-loops", str(args.test_loops),
-                  "--frames-per-loop", str(args.frames_per_loop), "--no-progress")
+        vlocnetpp(
+            "synth",
+            str(data),
+            "--seed",
+            str(seed),
+            "--loops",
+            "0",
+            "--test-loops",
+            str(args.test_loops),
+            "--frames-per-loop",
+            str(args.frames_per_loop),
+            "--no-progress",
+        )
     report = out / f"{label}.seed{seed}.json"
     if not report.is_file():
         print(f"scoring {label} on visit seed {seed}", file=sys.stderr)
         extra = ["--map", args.map, "--refine-every", str(args.refine_every)] if args.map else []
-        vlocnetpp("evaluate", "--checkpoint", checkpoint, "--data", str(data), "--reference", args.reference, *extra,
-                  "--threshold-m", "0.1", "--threshold-deg", "1", "--json", str(report), "--no-progress",
-                  "--trajectories", str(out / f"{label}.seed{seed}.trajectories"))
+        vlocnetpp(
+            "evaluate",
+            "--checkpoint",
+            checkpoint,
+            "--data",
+            str(data),
+            "--reference",
+            args.reference,
+            *extra,
+            "--threshold-m",
+            "0.1",
+            "--threshold-deg",
+            "1",
+            "--json",
+            str(report),
+            "--no-progress",
+            "--trajectories",
+            str(out / f"{label}.seed{seed}.trajectories"),
+        )
     return json.loads(report.read_text())
 
 
@@ -120,23 +162,39 @@ def table(per_seed: dict[int, dict[str, dict]]) -> str:
     cell = lambda v, fmt: "-" if np.isnan(v) else fmt.format(v)  # noqa: E731
     for seed, rows in per_seed.items():
         for name in names:
-            lines.append(f"| {seed} | {name} | " + " | ".join(cell(value(rows[name], g, k, f), fmt) for _, g, k, f, fmt in COLUMNS) + " |")
+            lines.append(
+                f"| {seed} | {name} | "
+                + " | ".join(cell(value(rows[name], g, k, f), fmt) for _, g, k, f, fmt in COLUMNS)
+                + " |"
+            )
     for name in names:
         vals = np.array([[value(rows[name], g, k, f) for _, g, k, f, _ in COLUMNS] for rows in per_seed.values()])
         with warnings.catch_warnings():  # a column without numbers (a baseline's odometry) stays "-"
             warnings.simplefilter("ignore", RuntimeWarning)
             mean = np.nanmean(vals, axis=0)
-            worst = [np.nanmin(c) if k in WORSE_IS_LOWER else np.nanmax(c) for c, (_, _, k, _, _) in zip(vals.T, COLUMNS, strict=True)]
-        lines.append(f"| mean | {name} | " + " | ".join(cell(v, c[4]) for v, c in zip(mean, COLUMNS, strict=True)) + " |")
-        lines.append(f"| worst | {name} | " + " | ".join(cell(v, c[4]) for v, c in zip(worst, COLUMNS, strict=True)) + " |")
+            worst = [
+                np.nanmin(c) if k in WORSE_IS_LOWER else np.nanmax(c)
+                for c, (_, _, k, _, _) in zip(vals.T, COLUMNS, strict=True)
+            ]
+        lines.append(
+            f"| mean | {name} | " + " | ".join(cell(v, c[4]) for v, c in zip(mean, COLUMNS, strict=True)) + " |"
+        )
+        lines.append(
+            f"| worst | {name} | " + " | ".join(cell(v, c[4]) for v, c in zip(worst, COLUMNS, strict=True)) + " |"
+        )
     return "\n".join(lines)
 
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     seeds = args.seed or draw_seeds(args.seeds)
-    checkpoints = [c.split("=", 1) if "=" in c else (Path(c).stem, c) for c in args.checkpoint] or [("shipped", "models/vlocnetpp_lite.safetensors")]
-    print(f"visit seeds: {' '.join(map(str, seeds))} ({args.test_loops} test loops of {args.frames_per_loop} frames each)", flush=True)
+    checkpoints = [c.split("=", 1) if "=" in c else (Path(c).stem, c) for c in args.checkpoint] or [
+        ("shipped", "models/vlocnetpp_lite.safetensors")
+    ]
+    print(
+        f"visit seeds: {' '.join(map(str, seeds))} ({args.test_loops} test loops of {args.frames_per_loop} frames each)",
+        flush=True,
+    )
     Path(args.out).mkdir(parents=True, exist_ok=True)
 
     def rows_of_seed(seed: int) -> dict[str, dict]:

@@ -43,9 +43,9 @@ def main() -> None:
     print("| gap [frames] | true step [m] | predicted step [m] | correlation within the gap |")
     print("|---|---|---|---|")
     for gap in range(args.max_gap + 1):
-        xyz, _, _ = model.odometry(features[:pairs], features[gap:gap + pairs])
+        xyz, _, _ = model.odometry(features[:pairs], features[gap : gap + pairs])
         predicted = xyz.norm(dim=1).numpy()
-        true = np.linalg.norm(t_wc[gap:gap + pairs] - t_wc[:pairs], axis=1)
+        true = np.linalg.norm(t_wc[gap : gap + pairs] - t_wc[:pairs], axis=1)
         corr = f"{np.corrcoef(true, predicted)[0, 1]:.2f}" if gap else "-"
         print(f"| {gap} | {true.mean():.2f} | {predicted.mean():.2f} +- {predicted.std():.2f} | {corr} |")
 

@@ -61,8 +61,12 @@ def _leaf_equal(w, g, path: str, rel: float, tol: float | None) -> None:
         assert g == w, path
 
 
-def pose_tolerances(frames: MatchedFrames, lengths_m: list[float], pose_atol: float,
-                    thresholds: tuple[tuple[float, float], ...] = DEFAULT_THRESHOLDS) -> Tolerance:
+def pose_tolerances(
+    frames: MatchedFrames,
+    lengths_m: list[float],
+    pose_atol: float,
+    thresholds: tuple[tuple[float, float], ...] = DEFAULT_THRESHOLDS,
+) -> Tolerance:
     """Absolute tolerance of each metric when every component of the global and odometry poses (metres,
     unit quaternions) may differ by ``pose_atol`` between the two reports and the masks are equal.
 
@@ -91,7 +95,10 @@ def pose_tolerances(frames: MatchedFrames, lengths_m: list[float], pose_atol: fl
     diameter = float(np.linalg.norm(odom[:, None] - odom[None], axis=-1).max()) if len(odom) else 0.0
     shortest = min(lengths_m) if lengths_m else math.inf
     # the pairs metrics.step_ratios counts: consecutive frames of one sequence that moved at least MIN_STEP_M
-    steps = np.concatenate([np.zeros(0)] + [np.linalg.norm(np.diff(frames.true_t[r.start:r.stop], axis=0), axis=1) for r in frames.sequences])
+    steps = np.concatenate(
+        [np.zeros(0)]
+        + [np.linalg.norm(np.diff(frames.true_t[r.start : r.stop], axis=0), axis=1) for r in frames.sequences]
+    )
     moved = steps[steps >= MIN_STEP_M]
     min_step = float(moved.min()) if len(moved) else math.inf
     odometry = {
@@ -100,7 +107,9 @@ def pose_tolerances(frames: MatchedFrames, lengths_m: list[float], pose_atol: fl
         "step_scale": 2.0 * trans / min_step,
     }
     t_err, r_err = pose_errors(frames.pred_t, frames.pred_q, frames.true_t, frames.true_q)
-    scopes = {"overall": np.arange(len(frames.stamps))} | {f"seq-{k:02d}": np.asarray(r) for k, r in enumerate(frames.sequences)}
+    scopes = {"overall": np.arange(len(frames.stamps))} | {
+        f"seq-{k:02d}": np.asarray(r) for k, r in enumerate(frames.sequences)
+    }
     accuracy = {}
     for scope, rows in scopes.items():
         for metres, degrees in thresholds:
@@ -109,7 +118,9 @@ def pose_tolerances(frames: MatchedFrames, lengths_m: list[float], pose_atol: fl
 
     def tolerance(scope: str, part: str, key: str) -> float:
         if part == "pose":
-            return {"median_translation_m": trans, "median_rotation_deg": rot_deg}.get(key, accuracy.get((scope, key), 0.0))
+            return {"median_translation_m": trans, "median_rotation_deg": rot_deg}.get(
+                key, accuracy.get((scope, key), 0.0)
+            )
         if part == "odometry":
             return odometry.get(key, 0.0)
         return 0.0

@@ -22,9 +22,14 @@ def ctrl_c_interrupts() -> None:
 
 
 def pytest_addoption(parser) -> None:
-    parser.addoption("--threads", type=int, default=None, metavar="N",
-                     help="torch and OpenMP threads for the tests and the programs they start (default: the libraries' own), "
-                          "e.g. 1 to check that nothing depends on a thread count")
+    parser.addoption(
+        "--threads",
+        type=int,
+        default=None,
+        metavar="N",
+        help="torch and OpenMP threads for the tests and the programs they start (default: the libraries' own), "
+        "e.g. 1 to check that nothing depends on a thread count",
+    )
 
 
 def pytest_configure(config) -> None:
@@ -53,7 +58,9 @@ def colcon_install(tmp_path_factory) -> Path:
     """
     root = tmp_path_factory.mktemp("colcon")
     src = root / "src" / "vlocnetpp_ros"
-    files = subprocess.run(["git", "ls-files", "-co", "--exclude-standard"], cwd=REPO, capture_output=True, text=True, check=True)
+    files = subprocess.run(
+        ["git", "ls-files", "-co", "--exclude-standard"], cwd=REPO, capture_output=True, text=True, check=True
+    )
     for rel in files.stdout.splitlines():
         p = REPO / rel
         if p.is_file():
@@ -62,9 +69,23 @@ def colcon_install(tmp_path_factory) -> Path:
     env = dict(os.environ)
     env["PATH"] = f"{Path(sys.executable).parent}:{env.get('PATH', '')}"
     proc = subprocess.run(
-        [_colcon(), "--log-base", str(root / "log"), "build", "--base-paths", str(root / "src"),
-         "--build-base", str(root / "build"), "--install-base", str(root / "install")],
-        cwd=root, env=env, capture_output=True, text=True, timeout=600,
+        [
+            _colcon(),
+            "--log-base",
+            str(root / "log"),
+            "build",
+            "--base-paths",
+            str(root / "src"),
+            "--build-base",
+            str(root / "build"),
+            "--install-base",
+            str(root / "install"),
+        ],
+        cwd=root,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
     )
     assert proc.returncode == 0, f"colcon build failed:\n{proc.stdout}\n{proc.stderr}"
     return root / "install"

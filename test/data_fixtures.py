@@ -31,7 +31,12 @@ def render_plane(t: np.ndarray, q: np.ndarray, K: Intrinsics) -> tuple[np.ndarra
     s = (PLANE_Z - t[2]) / rays_w[:, 2]  # ray parameter == camera depth because rays have z = 1
     P = t + s[:, None] * rays_w
     X, Y = P[:, 0], P[:, 1]
-    base = 0.5 + 0.2 * np.sin(2.1 * X + 0.3) * np.cos(1.7 * Y) + 0.15 * np.sin(5.3 * X - 3.1 * Y) + 0.1 * np.cos(7.7 * Y + 1.3 * X)
+    base = (
+        0.5
+        + 0.2 * np.sin(2.1 * X + 0.3) * np.cos(1.7 * Y)
+        + 0.15 * np.sin(5.3 * X - 3.1 * Y)
+        + 0.1 * np.cos(7.7 * Y + 1.3 * X)
+    )
     rgb = np.stack((base, 0.8 * base + 0.1 * np.sin(3.3 * X), 1.0 - base), -1)
     rgb = np.clip(rgb * 255 + 0.5, 0, 255).astype(np.uint8).reshape(K.height, K.width, 3)
     labels = (np.floor(X * 2).astype(np.int64) % 10).astype(np.uint8).reshape(K.height, K.width)
@@ -107,7 +112,9 @@ def write_deeploc_split(
     return truth
 
 
-def write_sevenscenes(root: Path, seqs: dict[int, int], train: list[int], test: list[int], K: Intrinsics = K_SMALL) -> dict[str, dict]:
+def write_sevenscenes(
+    root: Path, seqs: dict[int, int], train: list[int], test: list[int], K: Intrinsics = K_SMALL
+) -> dict[str, dict]:
     """Render a 7-Scenes scene folder with ``seqs`` {sequence number: frame count}; some depth
     pixels are set to the invalid values 0 and 65535. Returns the ground truth per frame id."""
     root.mkdir(parents=True, exist_ok=True)

@@ -37,7 +37,9 @@ def probe_batch(trainer) -> dict[str, torch.Tensor]:
     from vlocnetpp_core.data import ClipDataset, make_transform
 
     seg = "seg" in trainer.tasks
-    clips = ClipDataset(trainer.train_index, trainer.config.clip_len, make_transform(False, trainer.size), depth=seg, labels=seg)
+    clips = ClipDataset(
+        trainer.train_index, trainer.config.clip_len, make_transform(False, trainer.size), depth=seg, labels=seg
+    )
     return torch.utils.data.default_collate([clips[i] for i in range(len(clips))])
 
 

@@ -43,7 +43,9 @@ def intrinsics(batch: int, width: int, height: int, focal: float | None = None) 
     return K.expand(batch, 3, 3).clone()
 
 
-def random_clip_batch(batch: int, frames: int, width: int, height: int, num_classes: int = 10, seed: int = 0) -> dict[str, torch.Tensor]:
+def random_clip_batch(
+    batch: int, frames: int, width: int, height: int, num_classes: int = 10, seed: int = 0
+) -> dict[str, torch.Tensor]:
     """A ``ClipDataset``-style batch dict with random images and a consistent random trajectory."""
     g = torch.Generator().manual_seed(seed)
     t = torch.randn(batch, frames, 3, generator=g) * 3.0

@@ -29,9 +29,13 @@ from std_msgs.msg import Header
 from vlocnetpp_core.inference.localizer import Localizer
 from vlocnetpp_ros import conversions
 
-OUTPUTS = {"pose": ("vlocnet/pose", PoseStamped), "pwc": ("vlocnet/pose_with_covariance", PoseWithCovarianceStamped),
-           "odom": ("vlocnet/odometry", Odometry), "seg": ("vlocnet/segmentation", Image),
-           "net": ("vlocnet/network_pose", PoseStamped)}  # the network's own pose: only a node with a map publishes it
+OUTPUTS = {
+    "pose": ("vlocnet/pose", PoseStamped),
+    "pwc": ("vlocnet/pose_with_covariance", PoseWithCovarianceStamped),
+    "odom": ("vlocnet/odometry", Odometry),
+    "seg": ("vlocnet/segmentation", Image),
+    "net": ("vlocnet/network_pose", PoseStamped),
+}  # the network's own pose: only a node with a map publishes it
 CAMERA = "/camera/image_raw"
 
 
@@ -43,12 +47,16 @@ def domain_id(base: int) -> int:
 def camera_frames(n: int, height: int = 120, width: int = 200, seed: int = 0) -> list[np.ndarray]:
     """Smooth random RGB frames of a camera panning over a texture."""
     rng = np.random.default_rng(seed)
-    base = cv2.resize(rng.integers(0, 256, (height // 8 + 4, width // 8 + 4, 3), dtype=np.uint8), (width + 4 * n, height + 2 * n))
+    base = cv2.resize(
+        rng.integers(0, 256, (height // 8 + 4, width // 8 + 4, 3), dtype=np.uint8), (width + 4 * n, height + 2 * n)
+    )
     return [np.ascontiguousarray(base[k : k + height, 3 * k : 3 * k + width]) for k in range(n)]
 
 
 def image_msg(array: np.ndarray, encoding: str, stamp: float, frame_id: str = "camera") -> Image:
-    return conversions.array_to_image(array, encoding, Header(stamp=conversions.seconds_to_stamp(stamp), frame_id=frame_id))
+    return conversions.array_to_image(
+        array, encoding, Header(stamp=conversions.seconds_to_stamp(stamp), frame_id=frame_id)
+    )
 
 
 class Harness:
@@ -161,14 +169,27 @@ def params_file(install: Path, folder: Path, **overrides) -> Path:
 class InstalledNode:
     """``lib/vlocnetpp_ros/localizer --ros-args --params-file FILE [ARGS]`` from the install tree, on ROS domain ``domain``."""
 
-    def __init__(self, install: Path, params: Path, log: Path, domain: int, env: dict[str, str] | None = None, args: tuple[str, ...] = ()):
+    def __init__(
+        self,
+        install: Path,
+        params: Path,
+        log: Path,
+        domain: int,
+        env: dict[str, str] | None = None,
+        args: tuple[str, ...] = (),
+    ):
         self.env = env = {**install_env(install), **(env or {})}
         env.update(ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
         exe = install / "vlocnetpp_ros" / "lib" / "vlocnetpp_ros" / "localizer"
         self.log = log
         self._out = open(log, "w")
-        self.proc = subprocess.Popen([str(exe), "--ros-args", "--params-file", str(params), *args], env=env, cwd="/",
-                                     stdout=self._out, stderr=subprocess.STDOUT)
+        self.proc = subprocess.Popen(
+            [str(exe), "--ros-args", "--params-file", str(params), *args],
+            env=env,
+            cwd="/",
+            stdout=self._out,
+            stderr=subprocess.STDOUT,
+        )
 
     def output(self) -> str:
         if not self._out.closed:

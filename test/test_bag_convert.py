@@ -60,14 +60,22 @@ def _by_topic_mcap(path: Path) -> dict[str, list[tuple[int, object]]]:
         reader = make_reader(f)
         for schema, channel, message in reader.iter_messages(log_time_order=True):
             assert schema.encoding == "ros2msg" and channel.message_encoding == "cdr"
-            out.setdefault(channel.topic, []).append((message.log_time, messages.deserialize(message.data, schema.name)))
+            out.setdefault(channel.topic, []).append(
+                (message.log_time, messages.deserialize(message.data, schema.name))
+            )
     return out
 
 
 def _check_frames(by_topic, index, truth, image_check) -> None:
     ids = LOOP_A + LOOP_B
     stamps = [messages.seconds_to_ns(r.stamp) for r in index.records]
-    for topic in (conv.IMAGE_TOPIC, conv.CAMERA_INFO_TOPIC, conv.DEPTH_TOPIC, conv.SEMANTIC_TOPIC, conv.GROUND_TRUTH_TOPIC):
+    for topic in (
+        conv.IMAGE_TOPIC,
+        conv.CAMERA_INFO_TOPIC,
+        conv.DEPTH_TOPIC,
+        conv.SEMANTIC_TOPIC,
+        conv.GROUND_TRUTH_TOPIC,
+    ):
         assert [ns for ns, _ in by_topic[topic]] == stamps, topic
         assert [messages.stamp_ns(m) for _, m in by_topic[topic]] == stamps, topic
     for k, n in enumerate(ids):
@@ -139,7 +147,23 @@ def test_compressed_images_decode_to_the_source(deeploc, tmp_path, fmt):
 def test_split_all_rate_and_intrinsics_flags(deeploc, tmp_path):
     root, _ = deeploc
     out = tmp_path / "all.mcap"
-    assert main(["convert-deeploc", str(root), str(out), "--split", "all", "--rate", "10", "--intrinsics", "50,60,40,30", "--no-progress"]) == 0
+    assert (
+        main(
+            [
+                "convert-deeploc",
+                str(root),
+                str(out),
+                "--split",
+                "all",
+                "--rate",
+                "10",
+                "--intrinsics",
+                "50,60,40,30",
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     with BagReader(out) as reader:
         stamps = np.array([ns for _, ns, _ in reader.messages([conv.GROUND_TRUTH_TOPIC], raw=True)]) / 1e9
         infos = [m for _, _, m in reader.messages([conv.CAMERA_INFO_TOPIC])]
@@ -216,7 +240,11 @@ def _write_long_deeploc(root: Path, n: int, size: tuple[int, int] = (160, 120)) 
     split = root / "DeepLoc" / "test"
     t, q = trajectory(1)
     write_deeploc_split(root, "test", [0], t, q, K=K)
-    files = [split / "LeftImages/Image_0.png", split / "labels/Image_0.png", root / "DeepLoc_stereo/test/DepthImages/Image_0.png"]
+    files = [
+        split / "LeftImages/Image_0.png",
+        split / "labels/Image_0.png",
+        root / "DeepLoc_stereo/test/DepthImages/Image_0.png",
+    ]
     for i in range(1, n):
         for f in files:
             shutil.copyfile(f, f.with_name(f"Image_{i}.png"))
@@ -243,7 +271,10 @@ def test_memory_stays_flat_in_dataset_length(tmp_path):
     peak_short, data_short = _peak_bytes(tmp_path / "short", tmp_path / "short.mcap")
     peak_long, data_long = _peak_bytes(tmp_path / "long", tmp_path / "long.mcap")
     assert data_long - data_short > 4 * 2**20  # the 30 extra frames hold > 4 MiB of pixels...
-    assert peak_long - peak_short < 0.2 * (data_long - data_short), (peak_short, peak_long)  # ...that are never all in memory
+    assert peak_long - peak_short < 0.2 * (data_long - data_short), (
+        peak_short,
+        peak_long,
+    )  # ...that are never all in memory
 
 
 @pytest.fixture(scope="module")
@@ -255,13 +286,30 @@ def long_dataset(tmp_path_factory) -> Path:
 
 def _start_and_stop_midway(dataset: Path, out: Path) -> subprocess.Popen:
     """Start a conversion in a subprocess and SIGSTOP it once it is writing (the temp folder exists, the output not)."""
-    proc = subprocess.Popen([sys.executable, "-m", "vlocnetpp_core.cli", "convert", str(dataset), str(out), "--compress", "png", "--no-progress"],
-                            cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, preexec_fn=ctrl_c_interrupts)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "vlocnetpp_core.cli",
+            "convert",
+            str(dataset),
+            str(out),
+            "--compress",
+            "png",
+            "--no-progress",
+        ],
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        preexec_fn=ctrl_c_interrupts,
+    )
     tmp = temp_dir_for(out, proc.pid)
     while not any(tmp.rglob("*.mcap")) and proc.poll() is None:
         time.sleep(0.005)
     proc.send_signal(signal.SIGSTOP)
-    assert proc.poll() is None and not out.exists(), "the conversion finished before it could be interrupted: make the dataset longer"
+    assert proc.poll() is None and not out.exists(), (
+        "the conversion finished before it could be interrupted: make the dataset longer"
+    )
     return proc
 
 
@@ -307,16 +355,30 @@ def test_image_messages_roundtrip_with_row_padding_and_big_endian():
     rgb = np.random.default_rng(0).integers(0, 255, (5, 7, 3), dtype=np.uint8)
     msg = messages.image(1, "camera", rgb, "rgb8")
     padded = messages.TYPESTORE.types[messages.IMAGE](
-        header=msg.header, height=5, width=7, encoding="bgr8", is_bigendian=0, step=24,
-        data=np.concatenate((rgb[..., ::-1].reshape(5, 21), np.zeros((5, 3), np.uint8)), 1).reshape(-1))
+        header=msg.header,
+        height=5,
+        width=7,
+        encoding="bgr8",
+        is_bigendian=0,
+        step=24,
+        data=np.concatenate((rgb[..., ::-1].reshape(5, 21), np.zeros((5, 3), np.uint8)), 1).reshape(-1),
+    )
     np.testing.assert_array_equal(messages.image_to_rgb(padded), rgb)
     depth = np.linspace(0, 5, 35, dtype=np.float32).reshape(5, 7)
-    big = messages.TYPESTORE.types[messages.IMAGE](header=msg.header, height=5, width=7, encoding="32FC1", is_bigendian=1, step=28,
-                                                   data=depth.astype(">f4").view(np.uint8).reshape(-1))
+    big = messages.TYPESTORE.types[messages.IMAGE](
+        header=msg.header,
+        height=5,
+        width=7,
+        encoding="32FC1",
+        is_bigendian=1,
+        step=28,
+        data=depth.astype(">f4").view(np.uint8).reshape(-1),
+    )
     np.testing.assert_array_equal(messages.image_to_array(big), depth)
     back = messages.deserialize(messages.serialize(messages.image(3, "c", depth, "32FC1")), messages.IMAGE)
     np.testing.assert_array_equal(messages.image_to_array(back), depth)
-    truncated = messages.TYPESTORE.types[messages.IMAGE](header=msg.header, height=5, width=7, encoding="rgb8", is_bigendian=0, step=21,
-                                                         data=np.zeros(50, np.uint8))
+    truncated = messages.TYPESTORE.types[messages.IMAGE](
+        header=msg.header, height=5, width=7, encoding="rgb8", is_bigendian=0, step=21, data=np.zeros(50, np.uint8)
+    )
     with pytest.raises(FrameError, match="bytes"):
         messages.image_to_array(truncated)

@@ -59,8 +59,13 @@ def _write_bag(path, rng):
                 if index not in DROPPED:
                     late = ns + LATE_NS
                     writer.write("/vlocnet/pose", late, messages.pose_stamped(ns, "map", pred_t, pred_q))
-                    writer.write("/vlocnet/odometry", late, messages.odometry(ns, "odom", "camera", odom_t, odom_q, np.zeros(3), np.zeros(3),
-                                                                               np.eye(6), np.eye(6)))
+                    writer.write(
+                        "/vlocnet/odometry",
+                        late,
+                        messages.odometry(
+                            ns, "odom", "camera", odom_t, odom_q, np.zeros(3), np.zeros(3), np.eye(6), np.eye(6)
+                        ),
+                    )
                     writer.write("/vlocnet/segmentation", late, messages.image(ns, "camera", mask, "mono8"))
                     rel = None if last_odom is None else geometry.relative_pose(*last_odom, odom_t, odom_q)
                     rec.add(stamp, t[i], q[i], pred_t, pred_q, *(rel if rel is not None else (None, None)))
@@ -74,20 +79,31 @@ def _write_bag(path, rng):
 
 def test_evaluate_bag_matches_metrics_of_the_known_outputs(tmp_path, capsys):
     expected = _write_bag(tmp_path / "scored.mcap", np.random.default_rng(0))
-    assert main(["evaluate-bag", str(tmp_path / "scored.mcap"), "--json", str(tmp_path / "m.json"), "--threshold-m", "0.3"]) == 0
+    assert (
+        main(
+            ["evaluate-bag", str(tmp_path / "scored.mcap"), "--json", str(tmp_path / "m.json"), "--threshold-m", "0.3"]
+        )
+        == 0
+    )
     out = capsys.readouterr().out
     assert "seq-00" in out and "seq-01" in out
     got = json.loads((tmp_path / "m.json").read_text())
     want = evaluate_sequences(expected, thresholds=[(0.05, 5.0), (0.5, 5.0), (0.3, 5.0)])
     assert set(got["per_sequence"]) == {"seq-00", "seq-01"}
     assert_same_metrics(want, got)
-    assert got["overall"]["segmentation"]["pixel_accuracy"] < 1.0 and got["overall"]["odometry"]["translation_error_percent"] > 0
+    assert (
+        got["overall"]["segmentation"]["pixel_accuracy"] < 1.0
+        and got["overall"]["odometry"]["translation_error_percent"] > 0
+    )
     assert got["overall"]["timing"]["mean_ms"] is None
 
 
 def test_evaluate_bag_splits_sequences_on_the_gap_flag(tmp_path, capsys):
     _write_bag(tmp_path / "scored.mcap", np.random.default_rng(1))
-    assert main(["evaluate-bag", str(tmp_path / "scored.mcap"), "--json", str(tmp_path / "m.json"), "--max-gap-s", "20"]) == 0
+    assert (
+        main(["evaluate-bag", str(tmp_path / "scored.mcap"), "--json", str(tmp_path / "m.json"), "--max-gap-s", "20"])
+        == 0
+    )
     got = json.loads((tmp_path / "m.json").read_text())
     assert list(got["per_sequence"]) == ["seq-00"]  # the 10 s gap is no longer a boundary
     assert main(["evaluate-bag", str(tmp_path / "scored.mcap"), "--max-gap-s", "0"]) == 2
@@ -119,7 +135,11 @@ def _write_bag_with_images(path, rng, compressed: bool, skip_image: int | None =
             w.write("/ground_truth/pose", ns, messages.pose_stamped(ns, "map", t[i], q[i]))
             w.write("/vlocnet/pose", ns + LATE_NS, messages.pose_stamped(ns, "map", t[i] + [1.0, 0, 0], q[i]))
             if i != skip_image:
-                msg = messages.compressed_image(ns, "camera", images[i]) if compressed else messages.image(ns, "camera", images[i], "rgb8")
+                msg = (
+                    messages.compressed_image(ns, "camera", images[i])
+                    if compressed
+                    else messages.image(ns, "camera", images[i], "rgb8")
+                )
                 w.write(topic, ns, msg)
     return images, t, q
 
@@ -132,11 +152,20 @@ def test_evaluate_bag_scores_the_retrieval_baseline_on_the_bag_images(tmp_path, 
         images, t, q = _write_bag_with_images(tmp_path / "b.mcap", rng, compressed)
         order = rng.permutation(len(images))  # the reference holds the same views, shuffled, with their true poses
         ReferenceSet.from_images((images[k], t[k], q[k]) for k in order).save(tmp_path / "ref.npz")
-        argv = ["evaluate-bag", str(tmp_path / "b.mcap"), "--reference", str(tmp_path / "ref.npz"), "--json", str(tmp_path / "m.json")]
+        argv = [
+            "evaluate-bag",
+            str(tmp_path / "b.mcap"),
+            "--reference",
+            str(tmp_path / "ref.npz"),
+            "--json",
+            str(tmp_path / "m.json"),
+        ]
         assert main(argv) == 0
         got = json.loads((tmp_path / "m.json").read_text())
         assert got["overall"]["pose"]["median_translation_m"] == pytest.approx(1.0, abs=1e-6)
-        assert got["baseline"]["overall"]["pose"]["median_translation_m"] == pytest.approx(0.0, abs=1e-9)  # each frame found itself
+        assert got["baseline"]["overall"]["pose"]["median_translation_m"] == pytest.approx(
+            0.0, abs=1e-9
+        )  # each frame found itself
         assert got["baseline"]["network_beats_baseline"]["translation"] is False
         assert "the network does NOT beat retrieval" in capsys.readouterr().out
         (tmp_path / "b.mcap").unlink()

@@ -44,7 +44,20 @@ def setup(tmp_path_factory):
     assert main(["convert", str(root / "ds"), str(root / "in.mcap"), "--no-progress"]) == 0
     assert main(["convert", str(root / "ds"), str(root / "in_png.mcap"), "--compress", "png", "--no-progress"]) == 0
     init_checkpoint(dataclasses.replace(load_model_config("lite"), input_size=(64, 48)), root / "model", seed=3)
-    assert main(["replay", str(root / "in.mcap"), "--checkpoint", str(root / "model"), "--out", str(root / "out.mcap"), "--no-progress"]) == 0
+    assert (
+        main(
+            [
+                "replay",
+                str(root / "in.mcap"),
+                "--checkpoint",
+                str(root / "model"),
+                "--out",
+                str(root / "out.mcap"),
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     return root
 
 
@@ -70,7 +83,9 @@ def test_replay_writes_inputs_and_outputs(setup):
     with BagReader(setup / "in.mcap") as src, BagReader(setup / "out.mcap") as dst:
         assert set(dst.topics) == set(src.topics) | set(OUTPUTS)
         for topic in src.topics:  # the input topics are copied byte for byte
-            assert [(ns, bytes(d)) for _, ns, d in src.messages([topic], raw=True)] == [(ns, bytes(d)) for _, ns, d in dst.messages([topic], raw=True)]
+            assert [(ns, bytes(d)) for _, ns, d in src.messages([topic], raw=True)] == [
+                (ns, bytes(d)) for _, ns, d in dst.messages([topic], raw=True)
+            ]
         stamps = [messages.stamp_ns(m) for _, _, m in src.messages(["/camera/image_raw"])]
         assert sorted(outputs) == sorted((t, s) for t in OUTPUTS for s in stamps)
         odom = [m for _, _, m in dst.messages([ODOMETRY_TOPIC])]
@@ -83,25 +98,70 @@ def test_replay_writes_inputs_and_outputs(setup):
     assert (seg.encoding, seg.width, seg.height, seg.header.frame_id) == ("mono8", 96, 72, "camera")
     assert all(np.asarray(m.pose.covariance).reshape(6, 6).diagonal().min() > 0 for m in odom)
     # the first frame of each sequence has no motion (temporal state reset: at start, and after the 10 s gap)
-    moving = [np.linalg.norm([m.twist.twist.linear.x, m.twist.twist.linear.y, m.twist.twist.linear.z]) > 0 for m in odom]
+    moving = [
+        np.linalg.norm([m.twist.twist.linear.x, m.twist.twist.linear.y, m.twist.twist.linear.z]) > 0 for m in odom
+    ]
     assert moving == [False] + [True] * (len(LOOP_A) - 1) + [False] + [True] * (len(LOOP_B) - 1)
 
 
 def test_evaluate_bag_equals_evaluate_on_the_source(setup, capsys):
-    assert main(["evaluate", "--checkpoint", str(setup / "model"), "--data", str(setup / "ds"), "--split", "test",
-                 "--json", str(setup / "evaluate.json"), "--no-progress"]) == 0
-    assert main(["evaluate-bag", str(setup / "out.mcap"), "--json", str(setup / "bag.json"), "--plots", str(setup / "plots")]) == 0
+    assert (
+        main(
+            [
+                "evaluate",
+                "--checkpoint",
+                str(setup / "model"),
+                "--data",
+                str(setup / "ds"),
+                "--split",
+                "test",
+                "--json",
+                str(setup / "evaluate.json"),
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
+    assert (
+        main(
+            [
+                "evaluate-bag",
+                str(setup / "out.mcap"),
+                "--json",
+                str(setup / "bag.json"),
+                "--plots",
+                str(setup / "plots"),
+            ]
+        )
+        == 0
+    )
     table = capsys.readouterr().out
     assert "seq-00" in table and "seq-01" in table and "overall" in table
     ref, got = json.loads((setup / "evaluate.json").read_text()), json.loads((setup / "bag.json").read_text())
-    assert got["overall"]["segmentation"]["miou"] is not None and got["overall"]["odometry"]["translation_error_percent"] is not None
+    assert (
+        got["overall"]["segmentation"]["miou"] is not None
+        and got["overall"]["odometry"]["translation_error_percent"] is not None
+    )
     assert_same_metrics(ref, got)
     assert (setup / "plots" / "seq-00" / "trajectory.png").is_file()
 
 
 def test_compressed_png_bag_gives_the_same_outputs(setup, tmp_path):
     out = tmp_path / "png_out.mcap"
-    assert main(["replay", str(setup / "in_png.mcap"), "--checkpoint", str(setup / "model"), "--out", str(out), "--no-progress"]) == 0
+    assert (
+        main(
+            [
+                "replay",
+                str(setup / "in_png.mcap"),
+                "--checkpoint",
+                str(setup / "model"),
+                "--out",
+                str(out),
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     ref = _outputs(setup / "out.mcap")
     got = _outputs(out)
     assert got.keys() == ref.keys()
@@ -122,7 +182,9 @@ def _segmentation_margins(setup: Path, tmp_path: Path) -> dict[int, np.ndarray]:
     def step(image, encoding, stamp, **kwargs):
         stamps.append(round(stamp * 1e9))
         result = real_step(image, encoding, stamp, **kwargs)
-        gaps[-1] = cv2.resize(gaps[-1], (result.mask.shape[1], result.mask.shape[0]), interpolation=cv2.INTER_NEAREST_EXACT)
+        gaps[-1] = cv2.resize(
+            gaps[-1], (result.mask.shape[1], result.mask.shape[0]), interpolation=cv2.INTER_NEAREST_EXACT
+        )
         return result
 
     def net(*args):
@@ -147,9 +209,28 @@ def test_replay_through_the_node_gives_the_same_poses(setup, tmp_path):
     """
     out = tmp_path / "node.mcap"
     env = dict(os.environ, ROS_DOMAIN_ID=str(100 + os.getpid() % 100), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
-    proc = subprocess.run([sys.executable, "-m", "vlocnetpp_core.cli", "replay", str(setup / "in.mcap"), "--checkpoint", str(setup / "model"),
-                           "--out", str(out), "--through-node", "--rate", "max", "--no-progress"],
-                          cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "vlocnetpp_core.cli",
+            "replay",
+            str(setup / "in.mcap"),
+            "--checkpoint",
+            str(setup / "model"),
+            "--out",
+            str(out),
+            "--through-node",
+            "--rate",
+            "max",
+            "--no-progress",
+        ],
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert f"{len(LOOP_A + LOOP_B)} frames localized" in proc.stdout
     ref, got = _outputs(setup / "out.mcap"), _outputs(out)
@@ -182,7 +263,10 @@ def test_replay_errors_are_one_line(setup, tmp_path, capsys):
     base = ["--checkpoint", str(setup / "model"), "--no-progress"]
     assert main(["replay", str(setup / "in.mcap"), "--out", str(setup / "out.mcap"), *base]) == 2
     assert "exists" in capsys.readouterr().err
-    assert main(["replay", str(setup / "in.mcap"), "--out", str(tmp_path / "x.mcap"), "--image-topic", "/nope", *base]) == 2
+    assert (
+        main(["replay", str(setup / "in.mcap"), "--out", str(tmp_path / "x.mcap"), "--image-topic", "/nope", *base])
+        == 2
+    )
     assert "/nope" in capsys.readouterr().err
     assert main(["replay", str(setup / "in.mcap"), "--out", str(tmp_path / "x.mcap"), "--rate", "max", *base]) == 2
     assert "--through-node" in capsys.readouterr().err

@@ -25,8 +25,16 @@ from vlocnetpp_core.bench.timing import interleaved
 from vlocnetpp_core.cli import main
 from vlocnetpp_core.model import VLocNetPP, load_model_config
 
-FIGURES = ("cached_vs_recompute_speedup", "mtl_step_over_resnet50", "node_latency_over_step", "lite_hz",
-           "converter_speed_over_png_decode", "synth_fps", "train_nchw_over_nhwc", "peak_rss_mb")
+FIGURES = (
+    "cached_vs_recompute_speedup",
+    "mtl_step_over_resnet50",
+    "node_latency_over_step",
+    "lite_hz",
+    "converter_speed_over_png_decode",
+    "synth_fps",
+    "train_nchw_over_nhwc",
+    "peak_rss_mb",
+)
 
 
 def _map_of_the_bench_frames(folder):
@@ -36,8 +44,12 @@ def _map_of_the_bench_frames(folder):
     from vlocnetpp_core.mapping.build import build_map
     from vlocnetpp_core.synth import render_dataset
 
-    render_dataset(folder / "visit", seed=0, train_loops=0, test_loops=1, frames_per_loop=40, frame_interval=0.05, progress=False)
-    return build_map([open_dataset(folder / "visit", None, "test")], spacing_m=0.5, progress=False).save(folder / "visit.map.npz")
+    render_dataset(
+        folder / "visit", seed=0, train_loops=0, test_loops=1, frames_per_loop=40, frame_interval=0.05, progress=False
+    )
+    return build_map([open_dataset(folder / "visit", None, "test")], spacing_m=0.5, progress=False).save(
+        folder / "visit.map.npz"
+    )
 
 
 @pytest.fixture(scope="module")
@@ -45,7 +57,9 @@ def report(tmp_path_factory) -> dict:
     """``vlocnetpp bench --quick --json`` (one thread: the suite runs on a shared 2-core machine)."""
     folder = tmp_path_factory.mktemp("bench")
     campus_map = _map_of_the_bench_frames(folder)
-    (folder / "bench.yaml").write_text(f"threads: 1\nnode_repetitions: 4\nconverter_frames: 12\nrefinement_map: {campus_map}\n")
+    (folder / "bench.yaml").write_text(
+        f"threads: 1\nnode_repetitions: 4\nconverter_frames: 12\nrefinement_map: {campus_map}\n"
+    )
     mp = pytest.MonkeyPatch()
     mp.setenv("ROS_DOMAIN_ID", str(30 + os.getpid() % 60))  # the node and its probe on a domain of their own
     mp.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
@@ -61,7 +75,13 @@ def report(tmp_path_factory) -> dict:
 
 
 def test_quick_json_has_every_figure_with_numbers(report):
-    for key in FIGURES + ("paper_step_ms", "lite_hz_torch", "lite_hz_onnx", "mtl_step_over_resnet50_torch", "mtl_step_over_resnet50_onnx"):
+    for key in FIGURES + (
+        "paper_step_ms",
+        "lite_hz_torch",
+        "lite_hz_onnx",
+        "mtl_step_over_resnet50_torch",
+        "mtl_step_over_resnet50_onnx",
+    ):
         value = report[key]
         assert isinstance(value, (int, float)) and math.isfinite(value) and value > 0, key
     assert set(report["targets"]) == set(TARGETS)
@@ -70,7 +90,9 @@ def test_quick_json_has_every_figure_with_numbers(report):
         if entry["target"] is None:
             assert entry["met"] is None
         else:
-            assert entry["met"] == (entry["value"] >= entry["target"] if entry["compare"] == ">=" else entry["value"] <= entry["target"])
+            assert entry["met"] == (
+                entry["value"] >= entry["target"] if entry["compare"] == ">=" else entry["value"] <= entry["target"]
+            )
     assert report["targets"]["cached_vs_recompute_speedup"]["target"] == 1.4
     assert report["targets"]["lite_hz"]["target"] == 15.0
     assert "mtl_step_over_resnet50_cuda_graph" not in report  # CUDA only
@@ -88,15 +110,27 @@ def test_compute_ratio_is_reported(report):
 
 def test_ratios_are_the_quotients_of_the_reported_times(report):
     t = report["times_ms"]
-    assert report["cached_vs_recompute_speedup"] == pytest.approx(t["paper_step_recompute"] / t["paper_step_cached"], rel=1e-3)
-    assert report["mtl_step_over_resnet50_torch"] == pytest.approx(t["paper_step_cached"] / t["resnet50_forward"], rel=1e-3)
-    assert report["mtl_step_over_resnet50_onnx"] == pytest.approx(t["paper_step_onnx"] / t["resnet50_forward"], rel=1e-3)
-    assert report["mtl_step_over_resnet50"] == min(report["mtl_step_over_resnet50_torch"], report["mtl_step_over_resnet50_onnx"])
-    assert report["paper_step_ms"] == pytest.approx(t["paper_step_cached" if report["paper_backend"] == "torch" else "paper_step_onnx"], rel=1e-3)
+    assert report["cached_vs_recompute_speedup"] == pytest.approx(
+        t["paper_step_recompute"] / t["paper_step_cached"], rel=1e-3
+    )
+    assert report["mtl_step_over_resnet50_torch"] == pytest.approx(
+        t["paper_step_cached"] / t["resnet50_forward"], rel=1e-3
+    )
+    assert report["mtl_step_over_resnet50_onnx"] == pytest.approx(
+        t["paper_step_onnx"] / t["resnet50_forward"], rel=1e-3
+    )
+    assert report["mtl_step_over_resnet50"] == min(
+        report["mtl_step_over_resnet50_torch"], report["mtl_step_over_resnet50_onnx"]
+    )
+    assert report["paper_step_ms"] == pytest.approx(
+        t["paper_step_cached" if report["paper_backend"] == "torch" else "paper_step_onnx"], rel=1e-3
+    )
     assert report["node_latency_over_step"] == pytest.approx(t["node_latency"] / t["node_bare_step"], rel=1e-3)
     assert report["lite_hz"] == pytest.approx(1000.0 / t[f"lite_step_{report['lite_backend']}"], rel=1e-3)
     assert report["lite_hz"] == max(report["lite_hz_torch"], report["lite_hz_onnx"])
-    assert report["converter_speed_over_png_decode"] == pytest.approx(t["png_decode_frame"] / t["converter_frame"], rel=1e-3)
+    assert report["converter_speed_over_png_decode"] == pytest.approx(
+        t["png_decode_frame"] / t["converter_frame"], rel=1e-3
+    )
     assert report["synth_fps"] == pytest.approx(1000.0 / t["synth_frame"], rel=1e-3)
     assert report["train_nchw_over_nhwc"] == pytest.approx(t["train_step_nchw"] / t["train_step_nhwc"], rel=1e-3)
     assert report["node_refined_hz"] == pytest.approx(1000.0 / t["node_refined_latency_every1"], rel=1e-3)
@@ -116,7 +150,9 @@ def test_quick_run_says_what_it_measured(report):
     assert report["lite_input_size"] == [224, 128] and report["camera_size"] == [640, 360]
     assert report["machine"]["torch_threads"] == 1 and report["settings"]["converter_frames"] == 12
     assert report["converter_frames"] == 12 and report["converter_bag_mb"] > 0
-    assert 50 < report["peak_rss_mb"] < 100_000 and report["node_rss_mb"] <= report["peak_rss_mb"]  # a node with torch loaded
+    assert (
+        50 < report["peak_rss_mb"] < 100_000 and report["node_rss_mb"] <= report["peak_rss_mb"]
+    )  # a node with torch loaded
     table = format_table(report)
     for name in TARGETS:
         assert name in table
@@ -136,16 +172,38 @@ def test_resnet50_is_the_standard_one():
 
 def test_interleaved_rotates_the_order_and_cleans_up_untimed():
     calls, cleaned = [], []
-    times = interleaved({"a": lambda: calls.append("a"), "b": lambda: calls.append("b"), "c": lambda: calls.append("c")},
-                        repetitions=3, warmup=1, after=cleaned.append)
-    assert calls == ["a", "b", "c", "a", "b", "c", "b", "c", "a", "c", "a", "b"]  # warm-up, then each round starts elsewhere
+    times = interleaved(
+        {"a": lambda: calls.append("a"), "b": lambda: calls.append("b"), "c": lambda: calls.append("c")},
+        repetitions=3,
+        warmup=1,
+        after=cleaned.append,
+    )
+    assert calls == [
+        "a",
+        "b",
+        "c",
+        "a",
+        "b",
+        "c",
+        "b",
+        "c",
+        "a",
+        "c",
+        "a",
+        "b",
+    ]  # warm-up, then each round starts elsewhere
     assert cleaned == calls and all(len(v) == 3 and min(v) >= 0 for v in times.values())
 
 
 def test_bad_settings_are_one_line_errors(tmp_path, capsys):
     cfg = tmp_path / "b.yaml"
-    for text, expected in (("repetition: 3\n", "unknown bench setting"), ("camera_size: [640]\n", "camera_size"),
-                           ("threads: -1\n", "threads"), ("node_backend: trt\n", "node_backend"), ("[1, 2]\n", "mapping")):
+    for text, expected in (
+        ("repetition: 3\n", "unknown bench setting"),
+        ("camera_size: [640]\n", "camera_size"),
+        ("threads: -1\n", "threads"),
+        ("node_backend: trt\n", "node_backend"),
+        ("[1, 2]\n", "mapping"),
+    ):
         cfg.write_text(text)
         assert main(["bench", "--quick", "--config", str(cfg)]) == 2
         err = capsys.readouterr().err
@@ -168,12 +226,22 @@ def test_parts_that_are_not_installed_are_reported_not_measured(tmp_path):
     """As on a GPU machine with PyTorch only: without rclpy, rosbags and onnx the bench still measures
     the network figures and says, per figure, what was not measured and why (a real run in a fresh
     interpreter in which importing those packages fails)."""
-    (tmp_path / "b.yaml").write_text("threads: 1\nrepetitions: 1\nwarmup: 0\npaper_input_size: [128, 64]\nsynth_frames: 2\n")
-    code = ("import sys\nsys.modules.update(rclpy=None, rosbags=None, onnx=None)\nfrom vlocnetpp_core.cli import main\n"
-            f"sys.exit(main(['bench', '--quick', '--json', '--config', {str(tmp_path / 'b.yaml')!r}]))")
+    (tmp_path / "b.yaml").write_text(
+        "threads: 1\nrepetitions: 1\nwarmup: 0\npaper_input_size: [128, 64]\nsynth_frames: 2\n"
+    )
+    code = (
+        "import sys\nsys.modules.update(rclpy=None, rosbags=None, onnx=None)\nfrom vlocnetpp_core.cli import main\n"
+        f"sys.exit(main(['bench', '--quick', '--json', '--config', {str(tmp_path / 'b.yaml')!r}]))"
+    )
     env = dict(os.environ, VLOCNETPP_CACHE=str(tmp_path / "cache"))
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, env=env,
-                          cwd=Path(__file__).resolve().parents[1])
+    proc = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env=env,
+        cwd=Path(__file__).resolve().parents[1],
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
     report = json.loads(proc.stdout)
     for name in ("node_latency_over_step", "converter_speed_over_png_decode", "peak_rss_mb"):
@@ -226,5 +294,13 @@ def test_cuda_graph_step_matches_the_eager_step_over_a_stream():
             frame = torch.rand_like(image)
             eager, eager_state = model.step(frame, eager_state, K)
             captured, graph_state = graph_step(frame, graph_state, K)
-            for head in ("xyz", "quat", "rel_xyz", "rel_quat", "seg_logits"):  # untrained weights: large logits, so relative
-                torch.testing.assert_close(getattr(captured, head), getattr(eager, head), rtol=1e-4, atol=1e-4, msg=f"frame {k} {head}")
+            for head in (
+                "xyz",
+                "quat",
+                "rel_xyz",
+                "rel_quat",
+                "seg_logits",
+            ):  # untrained weights: large logits, so relative
+                torch.testing.assert_close(
+                    getattr(captured, head), getattr(eager, head), rtol=1e-4, atol=1e-4, msg=f"frame {k} {head}"
+                )

@@ -63,7 +63,9 @@ def test_meta_overrides_and_fp16_storage(lite_checkpoint: Path, tmp_path: Path):
     model, _ = load_checkpoint(lite_checkpoint)
     calib = {"pose_variance": [0.04, 0.04, 0.09, 1e-4, 1e-4, 2e-4], "odometry_variance": None, "frames": 12}
     K = Intrinsics(200.0, 190.0, 111.5, 63.5, 224, 128)
-    out = save_checkpoint(tmp_path / "half", model, {"calibration": calib, "intrinsics": K, "training": {"step": 7}}, dtype=torch.float16)
+    out = save_checkpoint(
+        tmp_path / "half", model, {"calibration": calib, "intrinsics": K, "training": {"step": 7}}, dtype=torch.float16
+    )
     assert out == tmp_path / "half.safetensors"
     assert out.stat().st_size < 0.6 * checkpoint_paths(lite_checkpoint)[0].stat().st_size
     loaded, meta = load_checkpoint(tmp_path / "half.json")
@@ -138,7 +140,9 @@ def test_missing_corrupt_and_mismatched_files_raise_one_clear_error(lite_checkpo
     meta = json.loads(s.read_text())
     meta["model_config"]["fc_width"] = 128
     s.write_text(json.dumps(meta))
-    with pytest.raises(DataError, match=r"otherconfig\.safetensors: weights do not fit the model config.*of another shape"):
+    with pytest.raises(
+        DataError, match=r"otherconfig\.safetensors: weights do not fit the model config.*of another shape"
+    ):
         load_checkpoint(w)
 
     w, s = _broken_copy(lite_checkpoint, tmp_path / "badcalib")

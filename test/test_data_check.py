@@ -36,7 +36,11 @@ def test_json_summary(plane_deeploc, capsys):
     assert train["has_depth"] and train["has_labels"] and test["has_depth"] and not test["has_labels"]
     assert "class_histogram" not in test
     hist = train["class_histogram"]
-    assert sum(hist.values()) == pytest.approx(1.0, abs=1e-4) and hist["ignore"] == 0 and min(hist[c] for c in ("Background", "Other")) > 0.05
+    assert (
+        sum(hist.values()) == pytest.approx(1.0, abs=1e-4)
+        and hist["ignore"] == 0
+        and min(hist[c] for c in ("Background", "Other")) > 0.05
+    )
     assert train["warp_pairs"] == 9 and test["warp_pairs"] == 4
     assert r["warp_consistency"] < 0.1  # rendered exactly: warping explains the motion
 
@@ -57,7 +61,9 @@ def test_text_report_warns_when_warping_does_not_help(plane_deeploc, tmp_path, c
     write_deeploc_split(tmp_path, "train", list(range(1, 7)), t, q)
     poses = tmp_path / "DeepLoc/train/poses.txt"
     lines = poses.read_text().splitlines()
-    lines[2:] = [" ".join([f[0], *(str(8 * float(v)) for v in f[1:4]), *f[4:]]) for f in (ln.split() for ln in lines[2:])]
+    lines[2:] = [
+        " ".join([f[0], *(str(8 * float(v)) for v in f[1:4]), *f[4:]]) for f in (ln.split() for ln in lines[2:])
+    ]
     poses.write_text("\n".join(lines))
     assert cli_main(["data-info", str(tmp_path), "--intrinsics", "80,80,47.5,35.5"]) == 0
     out = capsys.readouterr().out

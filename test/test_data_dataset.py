@@ -18,7 +18,9 @@ def deeploc_index(tmp_path_factory):
     root = tmp_path_factory.mktemp("clips")
     ta, qa = trajectory(6)
     tb, qb = trajectory(4, start=1.5)
-    write_deeploc_split(root, "train", [1, 2, 3, 4, 5, 6, 501, 502, 503, 504], np.concatenate((ta, tb)), np.concatenate((qa, qb)))
+    write_deeploc_split(
+        root, "train", [1, 2, 3, 4, 5, 6, 501, 502, 503, 504], np.concatenate((ta, tb)), np.concatenate((qa, qb))
+    )
     return open_dataset(root)
 
 
@@ -36,10 +38,16 @@ def test_clip_tensors(deeploc_index):
     ds = ClipDataset(deeploc_index, 3, make_transform(False, (64, 48)))
     s = ds[4]  # second sequence, records 6, 7, 8
     assert s["index"].tolist() == [6, 7, 8] and s["sequence"].item() == 1
-    assert s["image"].shape == (3, 3, 48, 64) and s["image"].dtype == torch.float32 and 0 <= s["image"].min() <= s["image"].max() <= 1
+    assert (
+        s["image"].shape == (3, 3, 48, 64)
+        and s["image"].dtype == torch.float32
+        and 0 <= s["image"].min() <= s["image"].max() <= 1
+    )
     assert s["depth"].shape == (3, 1, 48, 64) and s["labels"].shape == (3, 48, 64) and s["labels"].dtype == torch.int64
     assert s["has_depth"].item() and s["has_labels"].item()
-    assert s["K"].shape == (3, 3, 3) and s["K"][0, 0, 2].item() == pytest.approx(deeploc_index.intrinsics.resized(64, 48).cx, abs=1.0)
+    assert s["K"].shape == (3, 3, 3) and s["K"][0, 0, 2].item() == pytest.approx(
+        deeploc_index.intrinsics.resized(64, 48).cx, abs=1.0
+    )
     np.testing.assert_allclose(s["stamp"].numpy() - s["stamp"][0].item(), [0, 0.05, 0.1])
     assert s["rel_t"][0].abs().max() == 0 and s["rel_q"][0].tolist() == [1, 0, 0, 0]
     r = [deeploc_index.records[j] for j in (6, 7, 8)]
@@ -69,7 +77,9 @@ def test_relative_poses_of_every_clip_compose_its_frames_poses(deeploc_index, st
         s, r = ds[i], [deeploc_index.records[j] for j in ds.clip_indices(i)]
         assert s["rel_t"][0].abs().max() == 0 and s["rel_q"][0].tolist() == [1, 0, 0, 0]
         for k in (1, 2):
-            rt, rq = geometry.relative_pose(np.array(r[k - 1].t), np.array(r[k - 1].q), np.array(r[k].t), np.array(r[k].q))
+            rt, rq = geometry.relative_pose(
+                np.array(r[k - 1].t), np.array(r[k - 1].q), np.array(r[k].t), np.array(r[k].q)
+            )
             assert np.linalg.norm(rt) > 0.01  # the frames moved
             np.testing.assert_allclose(s["rel_t"][k].numpy(), rt, atol=1e-6)
             np.testing.assert_allclose(s["rel_q"][k].numpy(), rq, atol=1e-6)
@@ -79,8 +89,11 @@ def test_mirrored_clips_carry_the_relative_poses_of_their_mirrored_frames(deeplo
     """With the flip (stl-vo's training clips) half the clips are mirrored left-right; the relative poses of every
     clip are those its transformed frames' poses compose, so a mirrored clip turns the other way (yaw negated)."""
     plain = ClipDataset(deeploc_index, 3, make_transform(False, (64, 48)))
-    mirrored = ClipDataset(deeploc_index, 3, make_transform(True, (64, 48), scale=(1.0, 1.0), brightness=0, contrast=0,
-                                                            saturation=0, flip=True))
+    mirrored = ClipDataset(
+        deeploc_index,
+        3,
+        make_transform(True, (64, 48), scale=(1.0, 1.0), brightness=0, contrast=0, saturation=0, flip=True),
+    )
     torch.manual_seed(0)
     seen = set()
     for i in range(len(plain)):
@@ -89,8 +102,12 @@ def test_mirrored_clips_carry_the_relative_poses_of_their_mirrored_frames(deeplo
         assert flipped or torch.equal(m["image"], p["image"])
         seen.add(flipped)
         for k in (1, 2):
-            rt, rq = geometry.relative_pose(m["t"][k - 1].double().numpy(), m["q"][k - 1].double().numpy(),
-                                            m["t"][k].double().numpy(), m["q"][k].double().numpy())
+            rt, rq = geometry.relative_pose(
+                m["t"][k - 1].double().numpy(),
+                m["q"][k - 1].double().numpy(),
+                m["t"][k].double().numpy(),
+                m["q"][k].double().numpy(),
+            )
             np.testing.assert_allclose(m["rel_t"][k].numpy(), rt, atol=1e-5)
             np.testing.assert_allclose(m["rel_q"][k].numpy(), rq, atol=1e-5)
             sign = -1.0 if flipped else 1.0  # yaw (camera y) and roll (z) change sign, pitch (x) does not

@@ -27,7 +27,9 @@ def _two_loops(root, header, order="wxyz", depth="png"):
     t, q = np.concatenate((ta, tb)), np.concatenate((qa, qb))
     ids = LOOP_A + LOOP_B
     rng = np.random.default_rng(0)
-    return write_deeploc_split(root, "train", ids, t, q, header=header, order=order, depth=depth, line_order=list(rng.permutation(len(ids))))
+    return write_deeploc_split(
+        root, "train", ids, t, q, header=header, order=order, depth=depth, line_order=list(rng.permutation(len(ids)))
+    )
 
 
 def _same_pose(t1, q1, t2, q2):
@@ -36,7 +38,12 @@ def _same_pose(t1, q1, t2, q2):
 
 @pytest.mark.parametrize(
     "header",
-    [(), ("ImageName x y z qw qx qy qz",), ("DeepLoc train poses", "img_name x y z qw qx qy qz"), ("# synthetic campus", "ImageName x y z qw qx qy qz")],
+    [
+        (),
+        ("ImageName x y z qw qx qy qz",),
+        ("DeepLoc train poses", "img_name x y z qw qx qy qz"),
+        ("# synthetic campus", "ImageName x y z qw qx qy qz"),
+    ],
     ids=["no-header", "header", "title+header", "comment+header"],
 )
 def test_deeploc_reads_back_exactly(tmp_path, header):
@@ -114,7 +121,9 @@ def test_deeploc_intrinsics_default_json_and_given(tmp_path):
 def test_sevenscenes_reads_back_exactly(tmp_path):
     truth = write_sevenscenes(tmp_path, {1: 4, 2: 3, 3: 2}, train=[1, 3], test=[2])
     train = read_sevenscenes(tmp_path, "train")
-    assert [r.frame_id for r in train.records] == [f"seq-01/frame-{k:06d}" for k in range(4)] + [f"seq-03/frame-{k:06d}" for k in range(2)]
+    assert [r.frame_id for r in train.records] == [f"seq-01/frame-{k:06d}" for k in range(4)] + [
+        f"seq-03/frame-{k:06d}" for k in range(2)
+    ]
     assert train.sequences == [range(0, 4), range(4, 6)]
     assert train.intrinsics == SEVEN_SCENES_DEFAULT.resized(96, 72)
     for i, r in enumerate(train.records):

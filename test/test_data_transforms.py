@@ -111,10 +111,12 @@ def test_jitter_scales_brightness_contrast_and_saturation():
     pixels = image.astype(np.float64)
     grey = pixels @ np.array([0.299, 0.587, 0.114])
     np.testing.assert_array_equal(jitter_image(image, 1.0, 1.0, 1.0), image)
-    cases = [((0.8, 1.0, 1.0), 0.8 * pixels),
-             ((1.2, 1.0, 1.0), np.minimum(1.2 * pixels, 255)),
-             ((1.0, 0.0, 1.0), np.full_like(pixels, grey.mean())),
-             ((1.0, 1.0, 0.0), np.repeat(grey[..., None], 3, axis=-1))]
+    cases = [
+        ((0.8, 1.0, 1.0), 0.8 * pixels),
+        ((1.2, 1.0, 1.0), np.minimum(1.2 * pixels, 255)),
+        ((1.0, 0.0, 1.0), np.full_like(pixels, grey.mean())),
+        ((1.0, 1.0, 0.0), np.repeat(grey[..., None], 3, axis=-1)),
+    ]
     for (b, c, s), want in cases:
         got = jitter_image(image, b, c, s)
         assert got.dtype == np.uint8 and got.shape == image.shape
@@ -144,7 +146,9 @@ def test_flip_keeps_relative_pose_and_warping_consistent():
     rel = geometry.pose_to_matrix(*geometry.relative_pose(t[0], q[0], t[1], q[1]))
     rel_flipped = geometry.pose_to_matrix(*geometry.relative_pose(a.t, a.q, b.t, b.q))
     np.testing.assert_allclose(rel_flipped, M @ rel @ M, atol=1e-12)
-    np.testing.assert_allclose(geometry.pose_to_matrix(a.t, a.q), M @ geometry.pose_to_matrix(t[0], q[0]) @ M, atol=1e-12)
+    np.testing.assert_allclose(
+        geometry.pose_to_matrix(a.t, a.q), M @ geometry.pose_to_matrix(t[0], q[0]) @ M, atol=1e-12
+    )
     assert pair_warp_ratio(*frames) < 0.1 and pair_warp_ratio(a, b) < 0.1
     np.testing.assert_array_equal(flip_frame(a).image, frames[0].image)
     assert HorizontalFlip(0.0)(frames, np.random.default_rng(0)) == frames

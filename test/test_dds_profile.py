@@ -36,14 +36,20 @@ def test_without_a_user_profile_readers_are_dynamic_and_the_environment_is_resto
 def test_the_users_files_are_merged_and_their_values_kept(tmp_path: Path):
     (tmp_path / dds_profile.CWD_FILE).write_text(
         '<profiles xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles"><data_reader profile_name="/camera/image" '
-        'is_default_profile="true"><historyMemoryPolicy>PREALLOCATED_WITH_REALLOC</historyMemoryPolicy></data_reader></profiles>')
+        'is_default_profile="true"><historyMemoryPolicy>PREALLOCATED_WITH_REALLOC</historyMemoryPolicy></data_reader></profiles>'
+    )
     env = {dds_profile.PROFILES_ENV: str(LARGE_DATA), "RMW_FASTRTPS_PUBLICATION_MODE": "ASYNCHRONOUS"}
     applied = dds_profile.apply(env, tmp_path)
     path = Path(env[dds_profile.PROFILES_ENV])
     assert _texts(path, "profiles/participant/rtps/builtinTransports") == ["LARGE_DATA"]  # the user's transports
-    assert _texts(path, "profiles/data_reader/historyMemoryPolicy") == ["PREALLOCATED_WITH_REALLOC"]  # the user's choice
+    assert _texts(path, "profiles/data_reader/historyMemoryPolicy") == [
+        "PREALLOCATED_WITH_REALLOC"
+    ]  # the user's choice
     assert _texts(path, "profiles/data_writer/qos/publishMode/kind") == ["ASYNCHRONOUS"]
-    assert str(LARGE_DATA) in applied.message and "kept the user's data_reader /camera/image: historyMemoryPolicy" in applied.message
+    assert (
+        str(LARGE_DATA) in applied.message
+        and "kept the user's data_reader /camera/image: historyMemoryPolicy" in applied.message
+    )
     applied.restore()
     assert env == {dds_profile.PROFILES_ENV: str(LARGE_DATA), "RMW_FASTRTPS_PUBLICATION_MODE": "ASYNCHRONOUS"}
 
@@ -51,7 +57,11 @@ def test_the_users_files_are_merged_and_their_values_kept(tmp_path: Path):
 def test_nothing_is_changed_when_the_user_configures_fast_dds_or_another_rmw_runs(tmp_path: Path):
     bad = tmp_path / "bad.xml"
     bad.write_text("<profiles><data_reader")
-    for env in ({dds_profile.USE_XML_ENV: "0"}, {"RMW_IMPLEMENTATION": "rmw_cyclonedds_cpp"}, {dds_profile.PROFILES_ENV: str(bad)}):
+    for env in (
+        {dds_profile.USE_XML_ENV: "0"},
+        {"RMW_IMPLEMENTATION": "rmw_cyclonedds_cpp"},
+        {dds_profile.PROFILES_ENV: str(bad)},
+    ):
         before = dict(env)
         applied = dds_profile.apply(env, tmp_path)
         assert not applied.changed and env == before, applied.message
@@ -79,10 +89,22 @@ while not got and time.monotonic() < end:
     rclpy.spin_once(node, timeout_sec=0.1)
 print(applied.message, len(got) > 0)
 """
-    env = {k: v for k, v in os.environ.items() if k not in (dds_profile.USE_XML_ENV, dds_profile.SKIP_CWD_ENV, "RMW_IMPLEMENTATION")}
-    env.update({"PYTHONPATH": str(REPO), dds_profile.PROFILES_ENV: str(LARGE_DATA), "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
-                "ROS_DOMAIN_ID": str(150 + os.getpid() % 40)})
-    proc = subprocess.run([sys.executable, "-c", code], env=env, cwd=tmp_path, capture_output=True, text=True, timeout=60)
+    env = {
+        k: v
+        for k, v in os.environ.items()
+        if k not in (dds_profile.USE_XML_ENV, dds_profile.SKIP_CWD_ENV, "RMW_IMPLEMENTATION")
+    }
+    env.update(
+        {
+            "PYTHONPATH": str(REPO),
+            dds_profile.PROFILES_ENV: str(LARGE_DATA),
+            "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
+            "ROS_DOMAIN_ID": str(150 + os.getpid() % 40),
+        }
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", code], env=env, cwd=tmp_path, capture_output=True, text=True, timeout=60
+    )
     assert proc.returncode == 0, proc.stderr
     assert "XMLPARSER" not in proc.stderr and "Error" not in proc.stderr, proc.stderr
     assert proc.stdout.strip().endswith("True") and "DYNAMIC" in proc.stdout, proc.stdout

@@ -29,8 +29,20 @@ def evaluated(tmp_path_factory):
     torch.manual_seed(0)
     save_checkpoint(tmp / "ckpt" / "lite", VLocNetPP(load_model_config("lite")))
     out = tmp / "out"
-    argv = ["evaluate", "--checkpoint", str(tmp / "ckpt" / "lite"), "--data", str(tmp / "data"), "--no-progress",
-            "--json", str(out / "metrics.json"), "--trajectories", str(out / "traj"), "--plots", str(out / "plots")]
+    argv = [
+        "evaluate",
+        "--checkpoint",
+        str(tmp / "ckpt" / "lite"),
+        "--data",
+        str(tmp / "data"),
+        "--no-progress",
+        "--json",
+        str(out / "metrics.json"),
+        "--trajectories",
+        str(out / "traj"),
+        "--plots",
+        str(out / "plots"),
+    ]
     return tmp, argv, out
 
 
@@ -44,15 +56,30 @@ def test_evaluate_writes_report_trajectories_and_plots(evaluated, capsys):
 
     report = json.loads((out / "metrics.json").read_text())
     assert list(report) == ["overall", "per_sequence", "baseline", "meta"]
-    assert report["meta"] == {"checkpoint": str(tmp / "ckpt" / "lite"), "data": str(tmp / "data"), "split": "test",
-                              "tasks": ["loc", "vo", "seg"], "untrained_tasks": None}  # the sidecar does not say how it was trained
+    assert report["meta"] == {
+        "checkpoint": str(tmp / "ckpt" / "lite"),
+        "data": str(tmp / "data"),
+        "split": "test",
+        "tasks": ["loc", "vo", "seg"],
+        "untrained_tasks": None,
+    }  # the sidecar does not say how it was trained
     assert "note:" not in stdout
     assert any(line.split()[:2] == ["retrieval", str(FRAMES)] for line in stdout.splitlines())
     assert list(report["per_sequence"]) == ["seq-00"]
     for part in (report["overall"], report["per_sequence"]["seq-00"]):
         assert list(part) == ["pose", "odometry", "segmentation", "timing"]
-        assert list(part["pose"]) == ["median_translation_m", "median_rotation_deg", "accuracy_5cm_5deg", "accuracy_0.5m_5deg"]
-        assert list(part["odometry"]) == ["translation_error_percent", "rotation_error_deg_per_m", "lengths_m", "step_scale"]
+        assert list(part["pose"]) == [
+            "median_translation_m",
+            "median_rotation_deg",
+            "accuracy_5cm_5deg",
+            "accuracy_0.5m_5deg",
+        ]
+        assert list(part["odometry"]) == [
+            "translation_error_percent",
+            "rotation_error_deg_per_m",
+            "lengths_m",
+            "step_scale",
+        ]
         assert list(part["segmentation"]) == ["miou", "iou", "pixel_accuracy"]
         assert list(part["segmentation"]["iou"]) == list(CLASS_NAMES)
         assert 0.0 <= part["segmentation"]["miou"] <= 1.0 and 0.0 <= part["segmentation"]["pixel_accuracy"] <= 1.0
@@ -69,7 +96,9 @@ def test_evaluate_writes_report_trajectories_and_plots(evaluated, capsys):
     np.testing.assert_allclose(odo.t[0], truth.t[0], atol=1e-12)  # odometry starts at the true first pose
     odometry = report["overall"]["odometry"]
     assert len(odometry["lengths_m"]) == 8 and odometry["lengths_m"][0] > 0
-    t_err, _ = kitti_segment_errors(pose_to_matrix(truth.t, truth.q), pose_to_matrix(odo.t, odo.q), odometry["lengths_m"])
+    t_err, _ = kitti_segment_errors(
+        pose_to_matrix(truth.t, truth.q), pose_to_matrix(odo.t, odo.q), odometry["lengths_m"]
+    )
     assert odometry["translation_error_percent"] == pytest.approx(100 * np.mean(t_err), rel=1e-6)
 
     # the baseline: the pose of the nearest training image of --data, on the same frames
@@ -84,9 +113,17 @@ def test_evaluate_writes_report_trajectories_and_plots(evaluated, capsys):
     assert baseline["reference_frames"] == FRAMES and baseline["reference"].endswith("(train)")
     assert baseline["overall"]["pose"]["median_translation_m"] == pytest.approx(np.median(base_trans), abs=1e-9)
     assert baseline["overall"]["pose"]["median_rotation_deg"] == pytest.approx(np.median(base_rot), abs=1e-6)
-    assert baseline["network_beats_baseline"]["translation"] == bool(pose["median_translation_m"] < np.median(base_trans))
+    assert baseline["network_beats_baseline"]["translation"] == bool(
+        pose["median_translation_m"] < np.median(base_trans)
+    )
 
-    for name in ("confusion.png", "seq-00/trajectory.png", "seq-00/errors.png", "seq-00/confusion.png", "seq-00/segmentation.png"):
+    for name in (
+        "confusion.png",
+        "seq-00/trajectory.png",
+        "seq-00/errors.png",
+        "seq-00/confusion.png",
+        "seq-00/segmentation.png",
+    ):
         image = cv2.imread(str(out / "plots" / name))
         assert image is not None and image.shape[0] > 100, name
 
@@ -109,8 +146,19 @@ def test_evaluate_streams_through_the_localizer(evaluated):
 
 def test_evaluate_threshold_and_length_flags(evaluated, tmp_path):
     tmp, argv, _ = evaluated
-    argv = argv[:6] + ["--no-progress", "--max-frames", "5", "--threshold-m", "2", "--threshold-deg", "90", "--odometry-lengths", "0.5,1",
-                       "--json", str(tmp_path / "m.json")]
+    argv = argv[:6] + [
+        "--no-progress",
+        "--max-frames",
+        "5",
+        "--threshold-m",
+        "2",
+        "--threshold-deg",
+        "90",
+        "--odometry-lengths",
+        "0.5,1",
+        "--json",
+        str(tmp_path / "m.json"),
+    ]
     assert cli.main(argv) == 0
     report = json.loads((tmp_path / "m.json").read_text())
     assert list(report["overall"]["pose"])[2:] == ["accuracy_5cm_5deg", "accuracy_0.5m_5deg", "accuracy_2m_90deg"]
@@ -146,25 +194,43 @@ def test_evaluate_names_the_tasks_a_checkpoint_was_not_trained_for(evaluated, tm
 
     tmp, _, _ = evaluated
     torch.manual_seed(0)
-    ckpt = save_checkpoint(tmp_path / "stl-vo", VLocNetPP(load_model_config("lite")), {"training": {"stage": "stl-vo", "init": []}})
-    argv = ["evaluate", "--checkpoint", str(ckpt), "--data", str(tmp / "data"), "--no-progress", "--max-frames", "3",
-            "--json", str(tmp_path / "m.json")]
+    ckpt = save_checkpoint(
+        tmp_path / "stl-vo", VLocNetPP(load_model_config("lite")), {"training": {"stage": "stl-vo", "init": []}}
+    )
+    argv = [
+        "evaluate",
+        "--checkpoint",
+        str(ckpt),
+        "--data",
+        str(tmp / "data"),
+        "--no-progress",
+        "--max-frames",
+        "3",
+        "--json",
+        str(tmp_path / "m.json"),
+    ]
     assert cli.main(argv) == 0
     notes = [line for line in capsys.readouterr().out.splitlines() if line.startswith("note:")]
     assert len(notes) == 1 and "not trained for global pose, segmentation (stage stl-vo" in notes[0]
     assert json.loads((tmp_path / "m.json").read_text())["meta"]["untrained_tasks"] == ["loc", "seg"]
 
 
-@pytest.mark.parametrize("training, untrained", [
-    ({"stage": "init"}, ["loc", "vo", "seg"]),
-    ({"stage": "stl-seg", "init": []}, ["loc", "vo"]),
-    # stl-loc takes only the trunk of an stl-vo init and the encoder of an stl-seg one (as its global stream)
-    ({"stage": "stl-loc", "init": [{"stage": "stl-seg"}, {"stage": "stl-vo"}]}, ["vo", "seg"]),
-    ({"stage": "stl-vo", "init": [{"stage": "stl-loc"}]}, ["loc", "seg"]),  # only the trunk, as the other way round
-    ({"stage": "mtl", "init": []}, []),
-    ({"stage": "mtl", "step": 0, "init": [{"stage": "stl-loc"}, {"stage": "stl-seg"}]}, ["vo"]),  # assembled, no odometry stage
-    ({}, None),
-])
+@pytest.mark.parametrize(
+    "training, untrained",
+    [
+        ({"stage": "init"}, ["loc", "vo", "seg"]),
+        ({"stage": "stl-seg", "init": []}, ["loc", "vo"]),
+        # stl-loc takes only the trunk of an stl-vo init and the encoder of an stl-seg one (as its global stream)
+        ({"stage": "stl-loc", "init": [{"stage": "stl-seg"}, {"stage": "stl-vo"}]}, ["vo", "seg"]),
+        ({"stage": "stl-vo", "init": [{"stage": "stl-loc"}]}, ["loc", "seg"]),  # only the trunk, as the other way round
+        ({"stage": "mtl", "init": []}, []),
+        (
+            {"stage": "mtl", "step": 0, "init": [{"stage": "stl-loc"}, {"stage": "stl-seg"}]},
+            ["vo"],
+        ),  # assembled, no odometry stage
+        ({}, None),
+    ],
+)
 def test_untrained_tasks_from_the_sidecar(training, untrained):
     from vlocnetpp_core.evaluation.evaluate import untrained_tasks
 

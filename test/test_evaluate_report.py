@@ -60,7 +60,13 @@ def test_json_and_tum_files_read_back(tmp_path, results):
 
     written = write_trajectories(tmp_path / "traj", results)
     names = sorted(str(p.relative_to(tmp_path / "traj")) for p in written)
-    assert names == ["seq-01/global_pose.tum", "seq-01/ground_truth.tum", "seq-01/odometry.tum", "seq-02/global_pose.tum", "seq-02/ground_truth.tum"]
+    assert names == [
+        "seq-01/global_pose.tum",
+        "seq-01/ground_truth.tum",
+        "seq-01/odometry.tum",
+        "seq-02/global_pose.tum",
+        "seq-02/ground_truth.tum",
+    ]
     ref = file_interface.read_tum_trajectory_file(str(tmp_path / "traj/seq-02/ground_truth.tum"))
     est = file_interface.read_tum_trajectory_file(str(tmp_path / "traj/seq-02/global_pose.tum"))
     ape = evo_metrics.APE()

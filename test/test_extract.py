@@ -38,13 +38,28 @@ def deeploc(tmp_path_factory):
     root = tmp_path_factory.mktemp("deeploc")
     ta, qa = trajectory(len(LOOP_A))
     tb, qb = trajectory(len(LOOP_B), start=1.5)
-    truth = write_deeploc_split(root, "test", LOOP_A + LOOP_B, np.concatenate((ta, tb)), np.concatenate((qa, qb)), depth="pfm")
+    truth = write_deeploc_split(
+        root, "test", LOOP_A + LOOP_B, np.concatenate((ta, tb)), np.concatenate((qa, qb)), depth="pfm"
+    )
     return root, truth
 
 
 def _robot_bag(root: Path, out: Path, compress: bool) -> Path:
-    argv = ["convert", str(root), str(out), "--split", "test", "--robot-frame", "base_link", "--camera-extrinsics", EXT,
-            "--no-labels", "--intrinsics", "80,80,47.5,35.5", "--no-progress"]  # K_SMALL, the camera the fixture renders with
+    argv = [
+        "convert",
+        str(root),
+        str(out),
+        "--split",
+        "test",
+        "--robot-frame",
+        "base_link",
+        "--camera-extrinsics",
+        EXT,
+        "--no-labels",
+        "--intrinsics",
+        "80,80,47.5,35.5",
+        "--no-progress",
+    ]  # K_SMALL, the camera the fixture renders with
     assert main(argv + (["--compress", "png"] if compress else [])) == 0
     return out
 
@@ -80,21 +95,35 @@ def test_round_trip_through_tf_reproduces_the_dataset(deeploc, png_bag, tmp_path
         statics = [m for _, _, m in reader.messages(["/tf_static"])]
         static_qos = [q for c in reader.connections if c.topic == "/tf_static" for q in c.ext.offered_qos_profiles]
     assert [q.durability.name for q in static_qos] == ["TRANSIENT_LOCAL"]  # latched, as tf2 offers it
-    assert topics["/tf"] == messages.TF_MESSAGE and "/ground_truth/pose" not in topics and "/camera/semantic" not in topics
+    assert (
+        topics["/tf"] == messages.TF_MESSAGE and "/ground_truth/pose" not in topics and "/camera/semantic" not in topics
+    )
     assert len(statics) == 1 and statics[0].transforms[0].header.frame_id == "base_link"
     out = tmp_path / "ds"
-    assert main(["extract", str(bag), str(out), "--tf", "map", "base_link", "--camera-extrinsics", EXT, "--no-progress"]) == 0
+    assert (
+        main(["extract", str(bag), str(out), "--tf", "map", "base_link", "--camera-extrinsics", EXT, "--no-progress"])
+        == 0
+    )
     summary = capsys.readouterr().out
     assert "10 of 10 images" in summary and "train 10 frames in 2 sequences" in summary and "depth on 10" in summary
     _check_dataset(out, truth)
-    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["ds"] + ([] if compress else ["raw.mcap"]))  # no temp left
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
+        ["ds"] + ([] if compress else ["raw.mcap"])
+    )  # no temp left
     report = dataset_info(out)
     assert report["splits"]["train"]["frames"] == 10 and report["warp_consistency"] < 0.5
     assert main(["data-info", str(out)]) == 0 and "warning" not in capsys.readouterr().out
     clip = ClipDataset(open_dataset(out, None, "train"), clip_len=3)[0]  # what `train --data` reads
-    assert clip["image"].shape == (3, 3, K_SMALL.height, K_SMALL.width) and bool(clip["has_depth"]) and not bool(clip["has_labels"])
+    assert (
+        clip["image"].shape == (3, 3, K_SMALL.height, K_SMALL.width)
+        and bool(clip["has_depth"])
+        and not bool(clip["has_labels"])
+    )
     stamps = (out / "DeepLoc/train/stamps.txt").read_text().split()
-    assert stamps[:2] == ["Image_1.png", "0"] and json.loads((out / "extract.json").read_text())["pose_source"] == "/tf map -> base_link"
+    assert (
+        stamps[:2] == ["Image_1.png", "0"]
+        and json.loads((out / "extract.json").read_text())["pose_source"] == "/tf map -> base_link"
+    )
 
 
 def test_tf_chain_to_the_camera_frame_uses_the_static_transform(deeploc, png_bag, tmp_path):
@@ -138,21 +167,48 @@ def _write_sqlite_bag(path: Path, image_s: np.ndarray, pose_s: np.ndarray, encod
     ts = messages.TYPESTORE
     writer = Writer(path, version=9, storage_plugin=StoragePlugin.SQLITE3)
     writer.open()
-    conns = {t: writer.add_connection(t, ty, typestore=ts) for t, ty in
-             (("/camera/image_raw", messages.IMAGE), ("/camera/camera_info", messages.CAMERA_INFO), ("/odom", messages.ODOMETRY),
-              ("/camera/depth/image_raw", messages.IMAGE))}
+    conns = {
+        t: writer.add_connection(t, ty, typestore=ts)
+        for t, ty in (
+            ("/camera/image_raw", messages.IMAGE),
+            ("/camera/camera_info", messages.CAMERA_INFO),
+            ("/odom", messages.ODOMETRY),
+            ("/camera/depth/image_raw", messages.IMAGE),
+        )
+    }
     K = Intrinsics(20.0, 20.0, 7.5, 5.5, W, H)
     t, q = _truth(pose_s)
-    items = [(messages.seconds_to_ns(s), "/odom", messages.odometry(messages.seconds_to_ns(s), "odom", "base_link", t[k], q[k],
-                                                                     np.zeros(3), np.zeros(3), np.eye(6), np.eye(6)))
-             for k, s in enumerate(pose_s)]
+    items = [
+        (
+            messages.seconds_to_ns(s),
+            "/odom",
+            messages.odometry(
+                messages.seconds_to_ns(s),
+                "odom",
+                "base_link",
+                t[k],
+                q[k],
+                np.zeros(3),
+                np.zeros(3),
+                np.eye(6),
+                np.eye(6),
+            ),
+        )
+        for k, s in enumerate(pose_s)
+    ]
     for k, s in enumerate(image_s):
         ns = messages.seconds_to_ns(s)
         img = messages.image(ns, "camera", np.full((H, W), 10 * k % 256, np.uint8), "mono8")
         img.encoding = encoding
         items += [(ns, "/camera/image_raw", img), (ns, "/camera/camera_info", messages.camera_info(ns, "camera", K))]
         dns = messages.seconds_to_ns(s + (0.005 if k % 2 == 0 else 0.03))
-        items.append((dns, "/camera/depth/image_raw", messages.image(dns, "camera", np.full((H, W), 1000 + 100 * k, np.uint16), "16UC1")))
+        items.append(
+            (
+                dns,
+                "/camera/depth/image_raw",
+                messages.image(dns, "camera", np.full((H, W), 1000 + 100 * k, np.uint16), "16UC1"),
+            )
+        )
     for ns, topic, msg in sorted(items, key=lambda x: x[0]):
         writer.write(conns[topic], ns, messages.serialize(msg))
     writer.close()
@@ -164,13 +220,28 @@ def test_pose_topic_at_another_rate_is_interpolated(tmp_path, capsys):
     pose_s = pose_s[(pose_s < 1.8) | (pose_s > 2.2)]  # a 0.43 s hole
     _write_sqlite_bag(tmp_path / "bag", image_s, pose_s)
     out = tmp_path / "ds"
-    argv = ["extract", str(tmp_path / "bag"), str(out), "--pose-topic", "/odom", "--camera-extrinsics", EXT,
-            "--max-pose-gap", "0.3", "--depth-tolerance", "0.01", "--no-progress"]
+    argv = [
+        "extract",
+        str(tmp_path / "bag"),
+        str(out),
+        "--pose-topic",
+        "/odom",
+        "--camera-extrinsics",
+        EXT,
+        "--max-pose-gap",
+        "0.3",
+        "--depth-tolerance",
+        "0.01",
+        "--no-progress",
+    ]
     assert main(argv) == 0
     summary = capsys.readouterr().out
     before, after = (image_s < pose_s[0]).sum(), (image_s > pose_s[-1]).sum()
     hole = ((image_s > pose_s[3]) & (image_s < pose_s[4])).sum()  # the only pair of samples more than 0.3 s apart
-    assert f"no pose: before the first sample of /odom {before}" in summary and f"after the last sample of /odom {after}" in summary
+    assert (
+        f"no pose: before the first sample of /odom {before}" in summary
+        and f"after the last sample of /odom {after}" in summary
+    )
     assert f"samples of /odom more than 0.3 s apart {hole}" in summary and (before, after, hole) == (3, 4, 6)
     index = open_dataset(out, "deeploc", "train")
     names = (out / "DeepLoc/train/stamps.txt").read_text().split()
@@ -195,6 +266,7 @@ def test_pose_topic_at_another_rate_is_interpolated(tmp_path, capsys):
 
 def test_tf_chain_goes_up_and_down_the_tree_and_interpolates():
     """gps -> camera through map: inverse(map->gps, static) * map->odom (2 Hz) * odom->base_link (10 Hz) * base_link->camera."""
+
     def motion(s, v, axis, rate):
         s = np.asarray(s, dtype=np.float64)
         ax = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
@@ -209,13 +281,23 @@ def test_tf_chain_goes_up_and_down_the_tree_and_interpolates():
 
     gps = (np.array([2.0, -1.0, 0.3]), geometry.quat_normalize(np.array([0.9, 0.1, 0.0, 0.2])))
     tf = TfCollector()
-    for s_list, parent, child, fn in (([0.0, 0.5, 1.0, 1.5, 2.0], "map", "odom", odom), (np.arange(21) / 10, "odom", "base_link", base)):
+    for s_list, parent, child, fn in (
+        ([0.0, 0.5, 1.0, 1.5, 2.0], "map", "odom", odom),
+        (np.arange(21) / 10, "odom", "base_link", base),
+    ):
         t, q = fn(s_list)
         for k, s in enumerate(s_list):
             ns = messages.seconds_to_ns(s)
             tf.add(messages.tf_message([messages.transform_stamped(ns, parent, child, t[k], q[k])]), static=False)
-    tf.add(messages.tf_message([messages.transform_stamped(0, "base_link", "camera", *_ext()),
-                                messages.transform_stamped(0, "/map", "gps", *gps)]), static=True)
+    tf.add(
+        messages.tf_message(
+            [
+                messages.transform_stamped(0, "base_link", "camera", *_ext()),
+                messages.transform_stamped(0, "/map", "gps", *gps),
+            ]
+        ),
+        static=True,
+    )
     chain = tf.chain("gps", "camera")
     query = np.array([0.13, 0.77, 1.42, 1.999, 2.3])
     t, q, reasons = chain.at((query * 1e9).astype(np.int64), max_gap_s=0.6)
@@ -237,8 +319,14 @@ def test_plan_stride_min_motion_and_sequences():
     assert [f.ordinal for f in plan.frames] == [0, 3, 5, 6] and [f.id for f in plan.frames] == [1, 2, 3, 10001]
     assert plan.skipped == {"no pose": 1, "min motion": 4}
     plan = plan_frames(s.astype(np.int64), t, q, [None] * 9, Selection(stride=2, test_ranges=((0.25, 0.45),)))
-    assert [(f.ordinal, f.split, f.sequence) for f in plan.frames] == [(0, "train", 0), (2, "train", 0), (3, "test", 0),
-                                                                         (5, "train", 1), (6, "train", 2), (8, "train", 2)]
+    assert [(f.ordinal, f.split, f.sequence) for f in plan.frames] == [
+        (0, "train", 0),
+        (2, "train", 0),
+        (3, "test", 0),
+        (5, "train", 1),
+        (6, "train", 2),
+        (8, "train", 2),
+    ]
 
 
 # --------------------------------------------------------------------------- errors
@@ -251,14 +339,17 @@ def small_bag(tmp_path_factory) -> Path:
     return path
 
 
-@pytest.mark.parametrize("flags, expected", [
-    (["--image-topic", "/nope", "--pose-topic", "/odom"], ["--image-topic /nope", "no such topic"]),
-    (["--image-topic", "/odom", "--pose-topic", "/odom"], ["/odom", "nav_msgs/msg/Odometry", "expected"]),
-    (["--pose-topic", "/nope"], ["--pose-topic /nope", "no such topic"]),
-    ([], ["no pose source", "/odom"]),
-    (["--tf", "map", "base_link"], ["no /tf or /tf_static"]),
-    (["--pose-topic", "/odom", "--camera-info-topic", "/nope"], ["/nope"]),
-])
+@pytest.mark.parametrize(
+    "flags, expected",
+    [
+        (["--image-topic", "/nope", "--pose-topic", "/odom"], ["--image-topic /nope", "no such topic"]),
+        (["--image-topic", "/odom", "--pose-topic", "/odom"], ["/odom", "nav_msgs/msg/Odometry", "expected"]),
+        (["--pose-topic", "/nope"], ["--pose-topic /nope", "no such topic"]),
+        ([], ["no pose source", "/odom"]),
+        (["--tf", "map", "base_link"], ["no /tf or /tf_static"]),
+        (["--pose-topic", "/odom", "--camera-info-topic", "/nope"], ["/nope"]),
+    ],
+)
 def test_bad_topics_are_named_and_leave_nothing(small_bag, tmp_path, capsys, flags, expected):
     out = tmp_path / "ds"
     assert main(["extract", str(small_bag), str(out), "--no-progress", *flags]) == 2
@@ -279,7 +370,9 @@ def test_unsupported_encoding_and_no_pose(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "/camera/image_raw" in err and "'yuv422'" in err
     _write_sqlite_bag(tmp_path / "late", np.array([1.0, 1.1]), np.array([5.0, 5.1]))
-    assert main(["extract", str(tmp_path / "late"), str(tmp_path / "ds"), "--pose-topic", "/odom", "--no-progress"]) == 2
+    assert (
+        main(["extract", str(tmp_path / "late"), str(tmp_path / "ds"), "--pose-topic", "/odom", "--no-progress"]) == 2
+    )
     err = capsys.readouterr().err
     assert "no image of /camera/image_raw has a pose from /odom" in err and "before the first sample" in err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["late", "yuv"]
@@ -304,6 +397,10 @@ def test_extract_loads_neither_the_localizer_nor_the_model():
     """`vlocnetpp extract` reads bags and writes files: building its parser imports no localizer, checkpoint or network
     (extrinsics names the localizer's result type for annotations only). Torch itself still comes with
     vlocnetpp_core.geometry, whose one implementation of the pose algebra runs in torch for numpy inputs too."""
-    code = ("import sys; from vlocnetpp_core.cli import build_parser; build_parser('extract'); "
-            "print(sorted(m for m in ('vlocnetpp_core.inference.localizer', 'vlocnetpp_core.inference.checkpoint', 'vlocnetpp_core.model') if m in sys.modules))")
-    assert subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip() == "[]"
+    code = (
+        "import sys; from vlocnetpp_core.cli import build_parser; build_parser('extract'); "
+        "print(sorted(m for m in ('vlocnetpp_core.inference.localizer', 'vlocnetpp_core.inference.checkpoint', 'vlocnetpp_core.model') if m in sys.modules))"
+    )
+    assert (
+        subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip() == "[]"
+    )

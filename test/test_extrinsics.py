@@ -72,7 +72,9 @@ def test_odometry_of_the_base_is_conjugated_and_starts_at_identity():
     np.testing.assert_allclose(q0, [1, 0, 0, 0], atol=1e-12)
     t_oc, q_oc = _random_pose()
     E = _matrix(ext.t, ext.q)
-    np.testing.assert_allclose(_matrix(*ex.base_odometry(t_oc, q_oc, ext)), E @ _matrix(t_oc, q_oc) @ np.linalg.inv(E), atol=1e-10)
+    np.testing.assert_allclose(
+        _matrix(*ex.base_odometry(t_oc, q_oc, ext)), E @ _matrix(t_oc, q_oc) @ np.linalg.inv(E), atol=1e-10
+    )
 
 
 def test_the_optical_camera_of_a_forward_looking_robot():
@@ -125,8 +127,11 @@ def test_covariances_stay_symmetric_positive_semidefinite():
         cov = _random_spd()
         low_rank = np.diag([1.0, 0.0, 0.0, 0.0, 0.0, 1e-3])  # singular: PSD, not PD
         for c in (cov, low_rank):
-            for out in (ex.base_pose_covariance(c, q, ext), ex.base_odometry_covariance(c, q, ext),
-                        ex.transform_covariance(c, ext.adjoint)):
+            for out in (
+                ex.base_pose_covariance(c, q, ext),
+                ex.base_odometry_covariance(c, q, ext),
+                ex.transform_covariance(c, ext.adjoint),
+            ):
                 assert np.array_equal(out, out.T)
                 assert np.linalg.eigvalsh(out).min() >= -1e-12 * np.abs(out).max()
                 assert np.all(np.diag(out) >= 0)
@@ -168,22 +173,33 @@ def test_to_base_frame_moves_every_pose_of_a_result():
     moved = ex.to_base_frame(result, ext)
     E = _matrix(ext.t, ext.q)
     np.testing.assert_allclose(_matrix(moved.t, moved.q), _matrix(result.t, result.q) @ np.linalg.inv(E), atol=1e-10)
-    np.testing.assert_allclose(_matrix(moved.odom_t, moved.odom_q), E @ _matrix(result.odom_t, result.odom_q) @ np.linalg.inv(E), atol=1e-10)
-    np.testing.assert_allclose(_matrix(moved.rel_t, moved.rel_q), E @ _matrix(result.rel_t, result.rel_q) @ np.linalg.inv(E), atol=1e-10)
-    np.testing.assert_allclose(moved.pose_covariance, ex.base_pose_covariance(result.pose_covariance, result.q, ext), atol=1e-12)
-    np.testing.assert_allclose(moved.odom_covariance, ex.base_odometry_covariance(result.odom_covariance, result.odom_q, ext), atol=1e-12)
+    np.testing.assert_allclose(
+        _matrix(moved.odom_t, moved.odom_q), E @ _matrix(result.odom_t, result.odom_q) @ np.linalg.inv(E), atol=1e-10
+    )
+    np.testing.assert_allclose(
+        _matrix(moved.rel_t, moved.rel_q), E @ _matrix(result.rel_t, result.rel_q) @ np.linalg.inv(E), atol=1e-10
+    )
+    np.testing.assert_allclose(
+        moved.pose_covariance, ex.base_pose_covariance(result.pose_covariance, result.q, ext), atol=1e-12
+    )
+    np.testing.assert_allclose(
+        moved.odom_covariance, ex.base_odometry_covariance(result.odom_covariance, result.odom_q, ext), atol=1e-12
+    )
     assert moved.mask is result.mask and moved.stamp == result.stamp and moved.reset_reason == result.reset_reason
 
 
-@pytest.mark.parametrize(("values", "message"), [
-    ([0.0, 0.0, 0.0, 1.0, 0.0, 0.0], "got 6 value"),
-    ([0.0] * 8, "got 8 value"),
-    ([0.0, 0.0, 0.0, 1.1, 0.0, 0.0, 0.0], "has norm 1.1, not 1 within 0.001"),
-    ([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0], "has norm 0"),
-    ([float("nan"), 0.0, 0.0, 1.0, 0.0, 0.0, 0.0], "non-finite"),
-    ("0 0 0 1 0 0 0", "must be 7 numbers"),
-    ([0.0, 0.0, 0.0, True, 0.0, 0.0, 0.0], "must be 7 numbers"),
-])
+@pytest.mark.parametrize(
+    ("values", "message"),
+    [
+        ([0.0, 0.0, 0.0, 1.0, 0.0, 0.0], "got 6 value"),
+        ([0.0] * 8, "got 8 value"),
+        ([0.0, 0.0, 0.0, 1.1, 0.0, 0.0, 0.0], "has norm 1.1, not 1 within 0.001"),
+        ([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0], "has norm 0"),
+        ([float("nan"), 0.0, 0.0, 1.0, 0.0, 0.0, 0.0], "non-finite"),
+        ("0 0 0 1 0 0 0", "must be 7 numbers"),
+        ([0.0, 0.0, 0.0, True, 0.0, 0.0, 0.0], "must be 7 numbers"),
+    ],
+)
 def test_bad_extrinsics_are_refused_with_a_clear_error(values, message):
     with pytest.raises(UserError, match=message) as err:
         ex.CameraExtrinsics.from_values(values)
@@ -206,7 +222,23 @@ def _unit(i: int) -> np.ndarray:
 def _result() -> LocalizerResult:
     """A LocalizerResult with random poses, twist and full covariances."""
     (t, q), (ot, oq), (rt, rq) = _random_pose(), _random_pose(), _random_pose()
-    return LocalizerResult(stamp=1.5, t=t, q=q, rel_t=rt / 10, rel_q=rq, odom_t=ot, odom_q=oq, linear=RNG.normal(size=3),
-                           angular=RNG.normal(size=3), dt=0.05, pose_covariance=_random_spd(), odom_covariance=_random_spd(),
-                           twist_covariance=_random_spd(), mask=np.zeros((4, 5), np.uint8), reset_reason=None, seconds=0.01,
-                           network_t=t, network_q=q)
+    return LocalizerResult(
+        stamp=1.5,
+        t=t,
+        q=q,
+        rel_t=rt / 10,
+        rel_q=rq,
+        odom_t=ot,
+        odom_q=oq,
+        linear=RNG.normal(size=3),
+        angular=RNG.normal(size=3),
+        dt=0.05,
+        pose_covariance=_random_spd(),
+        odom_covariance=_random_spd(),
+        twist_covariance=_random_spd(),
+        mask=np.zeros((4, 5), np.uint8),
+        reset_reason=None,
+        seconds=0.01,
+        network_t=t,
+        network_q=q,
+    )

@@ -26,7 +26,9 @@ H, W = 90, 150  # camera images: not the network's 224x128 and another aspect ra
 def _frames(n: int, seed: int = 0, size: tuple[int, int] = (H, W)) -> list[np.ndarray]:
     """Smooth random RGB images, each a small shift of a larger texture (a moving camera)."""
     rng = np.random.default_rng(seed)
-    base = cv2.resize(rng.integers(0, 256, (size[0] // 6 + 4, size[1] // 6 + 4, 3), dtype=np.uint8), (size[1] + 40, size[0] + 40))
+    base = cv2.resize(
+        rng.integers(0, 256, (size[0] // 6 + 4, size[1] // 6 + 4, 3), dtype=np.uint8), (size[1] + 40, size[0] + 40)
+    )
     return [np.ascontiguousarray(base[2 * k : 2 * k + size[0], 3 * k : 3 * k + size[1]]) for k in range(n)]
 
 
@@ -46,7 +48,9 @@ def localizer(checkpoint: Path) -> Localizer:
 def _clip(localizer: Localizer, frames, intrinsics=None, depths=None):
     """The model's clip forward over the same frames (every frame recomputed from its image)."""
     K = localizer.default_intrinsics if intrinsics is None else intrinsics
-    inputs = [network_input(f, localizer.input_size, K, None if depths is None else depths[i]) for i, f in enumerate(frames)]
+    inputs = [
+        network_input(f, localizer.input_size, K, None if depths is None else depths[i]) for i, f in enumerate(frames)
+    ]
     images = torch.stack([x for x, _, _ in inputs], 1)
     Ks = torch.stack([k for _, k, _ in inputs], 1)
     depth = None if depths is None else torch.stack([d for _, _, d in inputs], 1)
@@ -182,7 +186,9 @@ def test_given_depth_replaces_the_prediction_for_warping(localizer: Localizer):
     frames = _frames(2, seed=6)
     depths = [np.full((H, W), 6.0, np.float32) for _ in frames]
     depths[1][: H // 2] = 0.0  # invalid half
-    with_depth = [localizer.step(f, "rgb8", 0.05 * k, depth=d) for k, (f, d) in enumerate(zip(frames, depths, strict=True))]
+    with_depth = [
+        localizer.step(f, "rgb8", 0.05 * k, depth=d) for k, (f, d) in enumerate(zip(frames, depths, strict=True))
+    ]
     clip = _clip(localizer, frames, depths=depths)
     np.testing.assert_allclose(with_depth[1].t, clip[1].xyz[0].double().numpy(), atol=1e-5)
     localizer.reset()
@@ -204,7 +210,10 @@ def test_intrinsics_describe_the_field_of_view_at_any_resolution(localizer: Loca
     b = [localizer.step(f, "rgb8", 0.05 * k, intrinsics=K2) for k, f in enumerate(frames)]
     np.testing.assert_allclose(a[1].t, b[1].t, atol=1e-6)
     localizer.reset()
-    c = [localizer.step(f, "rgb8", 0.05 * k, intrinsics=Intrinsics(300.0, 300.0, 74.5, 44.5, W, H)) for k, f in enumerate(frames)]
+    c = [
+        localizer.step(f, "rgb8", 0.05 * k, intrinsics=Intrinsics(300.0, 300.0, 74.5, 44.5, W, H))
+        for k, f in enumerate(frames)
+    ]
     assert not np.allclose(a[1].t, c[1].t, atol=1e-7)  # and they do reach the warp
 
 

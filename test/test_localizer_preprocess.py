@@ -24,7 +24,13 @@ RGB = RNG.integers(0, 256, (7, 5, 3), dtype=np.uint8)
 
 
 def _encode(rgb: np.ndarray, encoding: str) -> np.ndarray:
-    code = {"rgb8": None, "bgr8": cv2.COLOR_RGB2BGR, "rgba8": cv2.COLOR_RGB2RGBA, "bgra8": cv2.COLOR_RGB2BGRA, "mono8": cv2.COLOR_RGB2GRAY}[encoding]
+    code = {
+        "rgb8": None,
+        "bgr8": cv2.COLOR_RGB2BGR,
+        "rgba8": cv2.COLOR_RGB2RGBA,
+        "bgra8": cv2.COLOR_RGB2BGRA,
+        "mono8": cv2.COLOR_RGB2GRAY,
+    }[encoding]
     return rgb if code is None else cv2.cvtColor(rgb, code)
 
 
@@ -147,7 +153,9 @@ def test_a_dataset_frame_and_the_same_image_through_the_node_give_identical_netw
     for i, record in enumerate(index.records):
         item = clips[i]
         msg = conversions.array_to_image(read_rgb(record.image), "rgb8", Header(stamp=Time(), frame_id="camera"))
-        image, K, depth = network_input(to_rgb(conversions.image_to_array(msg), msg.encoding), size, index.intrinsics, index.load(i).depth)
+        image, K, depth = network_input(
+            to_rgb(conversions.image_to_array(msg), msg.encoding), size, index.intrinsics, index.load(i).depth
+        )
         assert torch.equal(image[0], item["image"][0])
         assert torch.allclose(K[0], item["K"][0], rtol=1e-6)
         assert torch.equal(depth[0], item["depth"][0])

@@ -22,8 +22,12 @@ def yaw(degrees: float) -> list[float]:
 
 def pose_batch(t, q, rel_t, rel_q, frames: int, size=(2, 3)) -> dict[str, torch.Tensor]:
     return {
-        "t": torch.tensor([t]), "q": torch.tensor([q]), "rel_t": torch.tensor([rel_t]), "rel_q": torch.tensor([rel_q]),
-        "labels": torch.full((1, frames, *size), 255), "depth": torch.zeros(1, frames, 1, *size),
+        "t": torch.tensor([t]),
+        "q": torch.tensor([q]),
+        "rel_t": torch.tensor([rel_t]),
+        "rel_q": torch.tensor([rel_q]),
+        "labels": torch.full((1, frames, *size), 255),
+        "depth": torch.zeros(1, frames, 1, *size),
     }
 
 
@@ -36,8 +40,11 @@ def test_localization_loss_known_values_in_se3_form():
     # Ground truth: frame 0 exact; frame 1 at (2, 2, 2), 3 m off, with the identity rotation.
     # Relative motion in camera t-1 (SE(3) form): R0^T (x1 - x0) = (0, -1, 0), no rotation: exact.
     batch = pose_batch(
-        t=[[0.0, 0.0, 0.0], [2.0, 2.0, 2.0]], q=[yaw(90), IDENTITY_Q],
-        rel_t=[[0.0, 0.0, 0.0], [0.0, -1.0, 0.0]], rel_q=[IDENTITY_Q, IDENTITY_Q], frames=2,
+        t=[[0.0, 0.0, 0.0], [2.0, 2.0, 2.0]],
+        q=[yaw(90), IDENTITY_Q],
+        rel_t=[[0.0, 0.0, 0.0], [0.0, -1.0, 0.0]],
+        rel_q=[IDENTITY_Q, IDENTITY_Q],
+        frames=2,
     )
     crit = VLocNetLoss("stl-loc")
     loss, parts = crit(outputs, batch)
@@ -59,11 +66,18 @@ def test_anchor_loss_is_the_cross_entropy_against_the_nearest_anchor():
     anchor nearest its ground-truth position, with weight 1, beside the unchanged paper terms."""
     anchors = torch.tensor([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0], [0.0, 10.0, 0.0]])
     logits = [torch.tensor([[2.0, 0.0, 0.0]]), torch.tensor([[0.0, 1.0, 3.0]])]
-    outputs = [StepOutput(xyz=torch.zeros(1, 3), quat=torch.tensor([IDENTITY_Q]), anchor_logits=lg, anchor_xyz=anchors)
-               for lg in logits]
+    outputs = [
+        StepOutput(xyz=torch.zeros(1, 3), quat=torch.tensor([IDENTITY_Q]), anchor_logits=lg, anchor_xyz=anchors)
+        for lg in logits
+    ]
     # frame 0 nearest anchor 1, frame 1 nearest anchor 2
-    batch = pose_batch(t=[[8.0, 1.0, 0.0], [1.0, 7.0, 0.0]], q=[IDENTITY_Q] * 2, rel_t=[[0.0, 0.0, 0.0]] * 2,
-                       rel_q=[IDENTITY_Q] * 2, frames=2)
+    batch = pose_batch(
+        t=[[8.0, 1.0, 0.0], [1.0, 7.0, 0.0]],
+        q=[IDENTITY_Q] * 2,
+        rel_t=[[0.0, 0.0, 0.0]] * 2,
+        rel_q=[IDENTITY_Q] * 2,
+        frames=2,
+    )
     expected = (-torch.log_softmax(logits[0], 1)[0, 1] - torch.log_softmax(logits[1], 1)[0, 2]).item() / 2
     _, parts = VLocNetLoss("stl-loc")(outputs, batch)
     assert parts["anchor"].item() == pytest.approx(expected, rel=1e-6)
@@ -89,7 +103,9 @@ def test_odometry_loss_skips_the_first_frame_and_uses_its_weights():
         StepOutput(rel_xyz=torch.tensor([[9.0, 9.0, 9.0]]), rel_quat=torch.tensor([yaw(60)])),  # first frame: ignored
         StepOutput(rel_xyz=torch.tensor([[0.0, 0.0, 1.0]]), rel_quat=torch.tensor([IDENTITY_Q])),
     ]
-    batch = pose_batch(t=[[0.0] * 3] * 2, q=[IDENTITY_Q] * 2, rel_t=[[0.0] * 3, [0.0, 0.0, 3.0]], rel_q=[IDENTITY_Q, yaw(10)], frames=2)
+    batch = pose_batch(
+        t=[[0.0] * 3] * 2, q=[IDENTITY_Q] * 2, rel_t=[[0.0] * 3, [0.0, 0.0, 3.0]], rel_q=[IDENTITY_Q, yaw(10)], frames=2
+    )
     crit = VLocNetLoss(("vo",))
     with torch.no_grad():
         crit.s_x_vo.fill_(math.log(2.0))
@@ -120,10 +136,24 @@ def test_segmentation_and_depth_losses_known_values():
     # Without labelled pixels or valid depth a term is left out (its learned weight would otherwise drift).
     empty = {"labels": torch.full((1, 2, 2, 3), 255), "depth": target[:, None].expand(1, 2, 1, 2, 3)}
     _, parts = VLocNetLoss("mtl", learned_weighting=True)(
-        [StepOutput(xyz=torch.zeros(1, 3), quat=torch.tensor([IDENTITY_Q]), seg_logits=logits, depth=pred,
-                    rel_xyz=torch.zeros(1, 3), rel_quat=torch.tensor([IDENTITY_Q]))] * 2,
-        {**empty, "t": torch.zeros(1, 2, 3), "q": torch.tensor([[IDENTITY_Q] * 2]), "rel_t": torch.zeros(1, 2, 3),
-         "rel_q": torch.tensor([[IDENTITY_Q] * 2])},
+        [
+            StepOutput(
+                xyz=torch.zeros(1, 3),
+                quat=torch.tensor([IDENTITY_Q]),
+                seg_logits=logits,
+                depth=pred,
+                rel_xyz=torch.zeros(1, 3),
+                rel_quat=torch.tensor([IDENTITY_Q]),
+            )
+        ]
+        * 2,
+        {
+            **empty,
+            "t": torch.zeros(1, 2, 3),
+            "q": torch.tensor([[IDENTITY_Q] * 2]),
+            "rel_t": torch.zeros(1, 2, 3),
+            "rel_q": torch.tensor([[IDENTITY_Q] * 2]),
+        },
     )
     assert "seg" not in parts and "depth" in parts
 
@@ -136,10 +166,22 @@ def test_multitask_weighting_eq6():
     logits = torch.zeros(1, 10, 2, 3)
     labels = torch.zeros(1, 2, 2, 3, dtype=torch.long)
     depth = torch.ones(1, 1, 2, 3)
-    out = StepOutput(xyz=torch.zeros(1, 3), quat=torch.tensor([IDENTITY_Q]), rel_xyz=torch.zeros(1, 3),
-                     rel_quat=torch.tensor([IDENTITY_Q]), seg_logits=logits, depth=depth)
-    batch = {"t": torch.zeros(1, 2, 3), "q": torch.tensor([[IDENTITY_Q] * 2]), "rel_t": torch.zeros(1, 2, 3),
-             "rel_q": torch.tensor([[IDENTITY_Q] * 2]), "labels": labels, "depth": depth[:, None].expand(1, 2, 1, 2, 3) * math.e}
+    out = StepOutput(
+        xyz=torch.zeros(1, 3),
+        quat=torch.tensor([IDENTITY_Q]),
+        rel_xyz=torch.zeros(1, 3),
+        rel_quat=torch.tensor([IDENTITY_Q]),
+        seg_logits=logits,
+        depth=depth,
+    )
+    batch = {
+        "t": torch.zeros(1, 2, 3),
+        "q": torch.tensor([[IDENTITY_Q] * 2]),
+        "rel_t": torch.zeros(1, 2, 3),
+        "rel_q": torch.tensor([[IDENTITY_Q] * 2]),
+        "labels": labels,
+        "depth": depth[:, None].expand(1, 2, 1, 2, 3) * math.e,
+    }
     loss, parts = crit([out, out], batch)
     assert parts["loc"].item() == pytest.approx(-3.0) and parts["vo"].item() == pytest.approx(-3.0)
     expected = -3.0 - 3.0 + math.log(10) * math.exp(-1.0) + 1.0 + 1.0 * math.exp(0.5) - 0.5

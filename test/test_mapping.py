@@ -176,18 +176,36 @@ def test_a_dataset_without_depth_is_triangulated_onto_the_surface(tmp_path):
     assert np.median(off) < 0.15 and np.percentile(off, 90) < 0.4, (np.median(off), np.percentile(off, 90))
 
 
-def test_a_scene_map_renders_only_the_keyframes_and_equals_the_map_of_the_rendered_dataset(campus_map, tmp_path, capsys):
+def test_a_scene_map_renders_only_the_keyframes_and_equals_the_map_of_the_rendered_dataset(
+    campus_map, tmp_path, capsys
+):
     """``--scene`` renders the keyframes of the visits ``synth`` rendered for the ``campus`` fixture (same scene, seed,
     loops, frames): the same pixels, depth and poses, so the same map, also from two worker processes."""
     out = tmp_path / "scene.map.npz"
-    args = ["--scene", "campus", "--seed", "0", "--loops", "2", "--frames-per-loop", "120", "--spacing", str(SPACING_M), "--angle", "20"]
+    args = [
+        "--scene",
+        "campus",
+        "--seed",
+        "0",
+        "--loops",
+        "2",
+        "--frames-per-loop",
+        "120",
+        "--spacing",
+        str(SPACING_M),
+        "--angle",
+        "20",
+    ]
     assert main(["map", "build", str(out), *args, "--workers", "2", "--no-progress"]) == 0
     assert "scene campus seed 0, 2 train visits" in KeyframeMap.load(out).source
     built, dataset = KeyframeMap.load(out), KeyframeMap.load(campus_map)
     for name in ("t", "q", "intrinsics", "image_sizes", "offsets", "uv", "points", "descriptors", "thumbnails"):
         np.testing.assert_array_equal(getattr(built, name), getattr(dataset, name), err_msg=name)
-    for bad, says in ((["--loops", "0"], "--loops must be >= 1"), (["--workers", "-1"], "--workers must be >= 0"),
-                      (["--lane-wander", "9"], "--lane-wander must be within")):
+    for bad, says in (
+        (["--loops", "0"], "--loops must be >= 1"),
+        (["--workers", "-1"], "--workers must be >= 0"),
+        (["--lane-wander", "9"], "--lane-wander must be within"),
+    ):
         assert main(["map", "build", str(tmp_path / "bad.npz"), *args, *bad, "--no-progress"]) == 2, bad
         assert says in capsys.readouterr().err
     assert not (tmp_path / "bad.npz").exists()
@@ -203,7 +221,11 @@ def test_map_file_round_trip_and_bad_files(campus_map, tmp_path):
     truncated.write_bytes(campus_map.read_bytes()[:5000])
     other = tmp_path / "other.npz"
     np.savez(other, x=np.zeros(3))
-    for path, says in ((truncated, "not a keyframe map"), (other, "not a keyframe map"), (tmp_path / "none.npz", "no such map file")):
+    for path, says in (
+        (truncated, "not a keyframe map"),
+        (other, "not a keyframe map"),
+        (tmp_path / "none.npz", "no such map file"),
+    ):
         with pytest.raises(DataError, match=says):
             KeyframeMap.load(path)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["again.npz", "other.npz", "truncated.npz"]

@@ -60,7 +60,13 @@ def test_pose_metrics_known_medians_and_accuracies():
     assert out["accuracy_5cm_5deg"] == pytest.approx(1 / 5)  # frame 1 is under 5 cm but at 6 deg
     assert out["accuracy_0.5m_5deg"] == pytest.approx(2 / 5)
     assert out["accuracy_1m_2.5deg"] == pytest.approx(2 / 5)  # frames 0 and 2; frame 3 is at 3 deg
-    assert list(out) == ["median_translation_m", "median_rotation_deg", "accuracy_5cm_5deg", "accuracy_0.5m_5deg", "accuracy_1m_2.5deg"]
+    assert list(out) == [
+        "median_translation_m",
+        "median_rotation_deg",
+        "accuracy_5cm_5deg",
+        "accuracy_0.5m_5deg",
+        "accuracy_1m_2.5deg",
+    ]
 
 
 def test_pose_errors_match_geometry_and_ignore_quaternion_sign():
@@ -108,7 +114,9 @@ def test_kitti_rotation_error_of_a_heading_drift_from_chained_relative_poses():
     _, rot = metrics.pose_errors(t_odo, q_odo, t_true, q_true)
     np.testing.assert_allclose(rot, np.arange(n), atol=1e-6)  # drift grows 1 deg per frame
     lengths = [3.5]
-    t_err, r_err = metrics.kitti_segment_errors(geometry.pose_to_matrix(t_true, q_true), geometry.pose_to_matrix(t_odo, q_odo), lengths)
+    t_err, r_err = metrics.kitti_segment_errors(
+        geometry.pose_to_matrix(t_true, q_true), geometry.pose_to_matrix(t_odo, q_odo), lengths
+    )
     np.testing.assert_allclose(r_err, np.full(n - 4, 4.0 / 3.5), atol=1e-6)
     assert np.all(t_err > 0)
 
@@ -117,7 +125,9 @@ def test_accumulate_odometry_of_true_relative_poses_gives_the_trajectory():
     traj = random_trajectory(30, 3)
     rel_t, rel_q = geometry.relative_pose(traj.t[:-1], traj.q[:-1], traj.t[1:], traj.q[1:])
     garbage_row0 = (np.array([[5.0, 5.0, 5.0]]), np.array([[0.0, 1.0, 0.0, 0.0]]))
-    t, q = accumulate_odometry(traj.t[0], traj.q[0], np.vstack((garbage_row0[0], rel_t)), np.vstack((garbage_row0[1], rel_q)))
+    t, q = accumulate_odometry(
+        traj.t[0], traj.q[0], np.vstack((garbage_row0[0], rel_t)), np.vstack((garbage_row0[1], rel_q))
+    )
     np.testing.assert_allclose(t, traj.t, atol=1e-9)
     np.testing.assert_allclose(q, traj.q, atol=1e-9)
 
@@ -181,7 +191,12 @@ def test_evaluate_sequences_per_sequence_and_pooled():
     assert list(report["per_sequence"]) == ["seq-01", "seq-02"]
     for part in [report["overall"], *report["per_sequence"].values()]:
         assert list(part) == ["pose", "odometry", "segmentation", "timing"]
-        assert set(part["odometry"]) == {"translation_error_percent", "rotation_error_deg_per_m", "lengths_m", "step_scale"}
+        assert set(part["odometry"]) == {
+            "translation_error_percent",
+            "rotation_error_deg_per_m",
+            "lengths_m",
+            "step_scale",
+        }
         assert set(part["timing"]) == {"mean_ms", "median_ms"}
     pa, pb = report["per_sequence"]["seq-01"], report["per_sequence"]["seq-02"]
     assert pa["pose"]["accuracy_5cm_5deg"] == 1.0 and pb["pose"]["accuracy_5cm_5deg"] == 0.0
@@ -196,7 +211,9 @@ def test_evaluate_sequences_per_sequence_and_pooled():
     assert pb["odometry"]["translation_error_percent"] == pytest.approx(100 * expected_b)
     count_a = sum(11 - (L + 1) for L in lengths)
     count_b = sum(c for _, c in per_length.values())
-    assert report["overall"]["odometry"]["translation_error_percent"] == pytest.approx(100 * expected_b * count_b / (count_a + count_b))
+    assert report["overall"]["odometry"]["translation_error_percent"] == pytest.approx(
+        100 * expected_b * count_b / (count_a + count_b)
+    )
     assert pb["timing"] == {"mean_ms": 30.0, "median_ms": 30.0}
     # the scale bias: every step of b 1.2 times too long; pooled, b's 20 pairs outnumber a's 10
     assert pa["odometry"]["step_scale"] == pytest.approx(1.0) and pb["odometry"]["step_scale"] == pytest.approx(1.2)
@@ -268,7 +285,11 @@ def tum_pair(tmp_path):
     R = Rotation.from_euler("xyz", [3, -5, 20], degrees=True)
     noise = Rotation.from_rotvec(rng.normal(0, 0.05, (60, 3)))
     est_rot = R * noise * Rotation.from_quat(ref.q[:, [1, 2, 3, 0]])
-    est = Trajectory(ref.stamps, 1.3 * R.apply(ref.t) + [2.0, 0.5, -1.0] + rng.normal(0, 0.1, (60, 3)), est_rot.as_quat()[:, [3, 0, 1, 2]])
+    est = Trajectory(
+        ref.stamps,
+        1.3 * R.apply(ref.t) + [2.0, 0.5, -1.0] + rng.normal(0, 0.1, (60, 3)),
+        est_rot.as_quat()[:, [3, 0, 1, 2]],
+    )
     write_tum(tmp_path / "ref.tum", ref)
     write_tum(tmp_path / "est.tum", est)
     return tmp_path / "ref.tum", tmp_path / "est.tum"
@@ -280,7 +301,9 @@ def test_ate_and_rpe_agree_with_evo(tum_pair):
     from evo.tools import file_interface
 
     ref_path, est_path = tum_pair
-    evo_ref, evo_est = sync.associate_trajectories(file_interface.read_tum_trajectory_file(str(ref_path)), file_interface.read_tum_trajectory_file(str(est_path)))
+    evo_ref, evo_est = sync.associate_trajectories(
+        file_interface.read_tum_trajectory_file(str(ref_path)), file_interface.read_tum_trajectory_file(str(est_path))
+    )
     ref, est = read_tum(ref_path), read_tum(est_path)
     assert len(ref) == evo_ref.num_poses == 60
 
@@ -298,7 +321,9 @@ def test_ate_and_rpe_agree_with_evo(tum_pair):
         np.testing.assert_allclose(align_trajectory(est, ref, with_scale).t, aligned.positions_xyz, atol=1e-6)
     # APE rotation part and RPE (translation and rotation angle) at several deltas
     _, rot = metrics.pose_errors(est.t, est.q, ref.t, ref.q)
-    np.testing.assert_allclose(rot, evo_error(evo_metrics.APE(evo_metrics.PoseRelation.rotation_angle_deg), evo_est), atol=1e-6)
+    np.testing.assert_allclose(
+        rot, evo_error(evo_metrics.APE(evo_metrics.PoseRelation.rotation_angle_deg), evo_est), atol=1e-6
+    )
     for delta, all_pairs in ((1, False), (4, False), (3, True)):
         trans, rot = metrics.rpe(ref, est, delta, all_pairs)
         kwargs = dict(delta=delta, delta_unit=evo_metrics.Unit.frames, all_pairs=all_pairs)

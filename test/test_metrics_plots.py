@@ -42,8 +42,16 @@ def test_write_plots_per_sequence_and_overall(tmp_path):
             rec.add_sample(np.full((24, 32, 3), 120, np.uint8), pred, true)
     written = write_plots(tmp_path, [rec.result()])
     names = sorted(str(p.relative_to(tmp_path)) for p in written)
-    assert names == ["confusion.png", "seq-03/confusion.png", "seq-03/errors.png", "seq-03/segmentation.png", "seq-03/trajectory.png"]
-    assert sorted(str(p.relative_to(tmp_path)) for p in tmp_path.rglob("*") if p.is_file()) == names  # no temporaries left
+    assert names == [
+        "confusion.png",
+        "seq-03/confusion.png",
+        "seq-03/errors.png",
+        "seq-03/segmentation.png",
+        "seq-03/trajectory.png",
+    ]
+    assert (
+        sorted(str(p.relative_to(tmp_path)) for p in tmp_path.rglob("*") if p.is_file()) == names
+    )  # no temporaries left
     strip = read_rgb(tmp_path / "seq-03/segmentation.png")
     for class_id in (1, 2, 6):  # sky, road (true and predicted), building (predicted only)
         assert has_color(strip, CLASS_COLORS[class_id]), class_id

@@ -78,10 +78,15 @@ def test_missing_config_file_is_a_clear_error(tmp_path):
 
 def test_base_takes_every_key_of_the_named_config_and_the_file_overrides_them(tmp_path):
     (tmp_path / "narrow.yaml").write_text("base: lite\nname: narrow\nfc_width: 128\n")
-    (tmp_path / "narrower.yaml").write_text("base: narrow.yaml\nname: narrower\ndropout: 0.0\n")  # relative to this file
-    assert load_model_config(tmp_path / "narrow.yaml") == dataclasses.replace(load_model_config("lite"), name="narrow", fc_width=128)
-    assert load_model_config(tmp_path / "narrower.yaml") == dataclasses.replace(load_model_config("lite"), name="narrower",
-                                                                                  fc_width=128, dropout=0.0)
+    (tmp_path / "narrower.yaml").write_text(
+        "base: narrow.yaml\nname: narrower\ndropout: 0.0\n"
+    )  # relative to this file
+    assert load_model_config(tmp_path / "narrow.yaml") == dataclasses.replace(
+        load_model_config("lite"), name="narrow", fc_width=128
+    )
+    assert load_model_config(tmp_path / "narrower.yaml") == dataclasses.replace(
+        load_model_config("lite"), name="narrower", fc_width=128, dropout=0.0
+    )
 
 
 @pytest.mark.parametrize(

@@ -20,7 +20,13 @@ def test_model_info_json_counts_every_stream(capsys):
     assert info["input_size"] == list(load_model_config("lite").input_size)
     assert info["params_trained_per_stage"]["mtl"] == info["params_total"]
     assert info["params_trained_per_stage"]["stl-loc"] == info["params_per_stream"]["global"]
-    assert info["global_stream"] == {"downsample": 2, "pooling": "flatten", "anchors": 256, "rotation_anchors": 32, "res5_size": [2, 4]}
+    assert info["global_stream"] == {
+        "downsample": 2,
+        "pooling": "flatten",
+        "anchors": 256,
+        "rotation_anchors": 32,
+        "res5_size": [2, 4],
+    }
     assert info["odometry_stream"] == {"pooling": "flatten", "res5_size": [4, 7]}
 
 
@@ -50,7 +56,15 @@ def test_model_info_from_the_install_tree_finds_the_shipped_configs(colcon_insta
     from conftest import install_env
 
     exe = colcon_install / "vlocnetpp_ros" / "lib" / "vlocnetpp_ros" / "vlocnetpp"
-    out = subprocess.run([str(exe), "model-info", "--config", "lite", "--json"], env=install_env(colcon_install), cwd="/",
-                         capture_output=True, text=True, timeout=120)
+    out = subprocess.run(
+        [str(exe), "model-info", "--config", "lite", "--json"],
+        env=install_env(colcon_install),
+        cwd="/",
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert out.returncode == 0, out.stderr
-    assert json.loads(out.stdout)["params_total"] == sum(p.numel() for p in VLocNetPP(load_model_config("lite")).parameters())
+    assert json.loads(out.stdout)["params_total"] == sum(
+        p.numel() for p in VLocNetPP(load_model_config("lite")).parameters()
+    )

@@ -25,13 +25,28 @@ def expected_taps(cfg: ModelConfig, batch: int, width: int, height: int) -> dict
     def stride(s: int) -> tuple[int, int]:  # stride-2 layers and the pooling round up
         return math.ceil(height / s), math.ceil(width / s)
 
-    s8, s16, p = (height // 8, width // 8), (height // 16, width // 16), cfg.global_downsample  # the global stream pools Res3 by p
+    s8, s16, p = (
+        (height // 8, width // 8),
+        (height // 16, width // 16),
+        cfg.global_downsample,
+    )  # the global stream pools Res3 by p
     shapes = {
-        "res3": (c1, *s8), "res4c": (c2, *stride(16 * p)), "res4c_fused": (c2, *stride(16 * p)), "res4f": (c2, *stride(16 * p)),
-        "res5a": (c3, *stride(32 * p)), "res5a_fused": (c3, *stride(32 * p)), "res5c": (c3, *stride(32 * p)),
-        "odo_res4": (c2, *s16), "odo_res5": (c3, *stride(32)),
-        "sem_res3": (c1, *s8), "sem_res4f": (c2, *s16), "sem_res4f_warped": (c2, *s16), "sem_res4f_fused": (c2, *s16),
-        "sem_res5c": (c3, *s16), "sem_res5c_warped": (c3, *s16), "sem_res5c_fused": (c3, *s16),
+        "res3": (c1, *s8),
+        "res4c": (c2, *stride(16 * p)),
+        "res4c_fused": (c2, *stride(16 * p)),
+        "res4f": (c2, *stride(16 * p)),
+        "res5a": (c3, *stride(32 * p)),
+        "res5a_fused": (c3, *stride(32 * p)),
+        "res5c": (c3, *stride(32 * p)),
+        "odo_res4": (c2, *s16),
+        "odo_res5": (c3, *stride(32)),
+        "sem_res3": (c1, *s8),
+        "sem_res4f": (c2, *s16),
+        "sem_res4f_warped": (c2, *s16),
+        "sem_res4f_fused": (c2, *s16),
+        "sem_res5c": (c3, *s16),
+        "sem_res5c_warped": (c3, *s16),
+        "sem_res5c_fused": (c3, *s16),
     }
     return {k: (batch, *v) for k, v in shapes.items()}
 
@@ -92,7 +107,9 @@ def test_global_downsample_pools_res3_for_the_global_stream_only():
             pooled = block(pooled)
         torch.testing.assert_close(a.taps["res4c"], pooled, rtol=1e-5, atol=1e-5)
         sem = a.taps["sem_res5c_fused"].reshape(1, -1, 4, 2, 7, 2).mean(dim=(3, 5))
-        torch.testing.assert_close(a.taps["res4c_fused"], halved.semantic_fusion(a.taps["res4c"], sem), rtol=1e-5, atol=1e-5)
+        torch.testing.assert_close(
+            a.taps["res4c_fused"], halved.semantic_fusion(a.taps["res4c"], sem), rtol=1e-5, atol=1e-5
+        )
 
 
 def test_flatten_head_reads_where_things_are():
@@ -206,8 +223,11 @@ def test_kmeans_anchors_cover_the_positions():
     [
         ("temporal_fusion", ["global_stream.temporal_fusion"], ["res5a_fused"]),
         ("semantic_fusion", ["semantic_fusion"], ["res4c_fused"]),
-        ("warping", ["semantic.warp_fusion_res4f", "semantic.warp_fusion_res5c", "depth_head"],
-         ["sem_res4f_warped", "sem_res4f_fused", "sem_res5c_warped", "sem_res5c_fused"]),
+        (
+            "warping",
+            ["semantic.warp_fusion_res4f", "semantic.warp_fusion_res5c", "depth_head"],
+            ["sem_res4f_warped", "sem_res4f_fused", "sem_res5c_warped", "sem_res5c_fused"],
+        ),
     ],
 )
 def test_ablation_switch_removes_the_branch(switch, gone_modules, gone_taps):
@@ -257,9 +277,14 @@ def test_bad_inputs_are_clear_errors():
 
 
 def test_config_input_size_is_only_a_default_with_average_pooling():
-    check_step_shapes(lite(input_size=(64, 32), global_pose_pooling="average", odometry_pose_pooling="average"), 128, 64, batch=1)
+    check_step_shapes(
+        lite(input_size=(64, 32), global_pose_pooling="average", odometry_pose_pooling="average"), 128, 64, batch=1
+    )
     for flattened in ("global_pose_pooling", "odometry_pose_pooling"):  # either flattened head fixes the input size
-        other = {"global_pose_pooling": "odometry_pose_pooling", "odometry_pose_pooling": "global_pose_pooling"}[flattened]
+        other = {"global_pose_pooling": "odometry_pose_pooling", "odometry_pose_pooling": "global_pose_pooling"}[
+            flattened
+        ]
         with pytest.raises(ValueError, match="input_size"), torch.inference_mode():
             VLocNetPP(lite(input_size=(64, 32), **{flattened: "flatten", other: "average"})).eval().step(
-                torch.rand(1, 3, 64, 128), None, intrinsics(1, 128, 64))
+                torch.rand(1, 3, 64, 128), None, intrinsics(1, 128, 64)
+            )

@@ -51,7 +51,10 @@ def test_state_carries_the_previous_frame(model):
     batch = random_clip_batch(1, 3, W, H, seed=2)
     images, K = batch["image"], batch["K"][:, 0]
     # An untrained odometry stream predicts arbitrary motion (everything out of view): warp with a small known one.
-    depth, small = torch.full((1, 1, H, W), 5.0), pose_to_matrix(torch.tensor([[0.1, 0.0, 0.2]]), torch.tensor([[1.0, 0.0, 0.02, 0.0]]))
+    depth, small = (
+        torch.full((1, 1, H, W), 5.0),
+        pose_to_matrix(torch.tensor([[0.1, 0.0, 0.2]]), torch.tensor([[1.0, 0.0, 0.02, 0.0]])),
+    )
     model.eval()
     with torch.no_grad():
         _, state_a = model.step(images[:, 0], None, K)
@@ -79,7 +82,9 @@ def test_position_prior_shifts_the_global_translation():
         model.set_pose_prior(positions)
         after, _ = model.step(image, tasks=("loc",))
     torch.testing.assert_close(model.global_stream.head.xyz_scale, torch.tensor([4.0, 1.0, 1.0]))
-    torch.testing.assert_close(after.xyz, torch.tensor([[100.0, -20.0, 3.5]]) + torch.tensor([4.0, 1.0, 1.0]) * before.xyz)
+    torch.testing.assert_close(
+        after.xyz, torch.tensor([[100.0, -20.0, 3.5]]) + torch.tensor([4.0, 1.0, 1.0]) * before.xyz
+    )
     torch.testing.assert_close(after.quat, before.quat)
 
 
@@ -112,14 +117,19 @@ def test_mtl_backward_reaches_every_parameter():
     dead = [n for n, p in model.named_parameters() if p.grad is None or p.grad.abs().sum() == 0]
     assert dead == []
     dead_weights = [n for n, p in criterion.named_parameters() if p.grad is None or p.grad == 0]
-    assert dead_weights == [] and len(list(criterion.parameters())) == 6  # s_x, s_q (shared with the consistency terms), s_x_vo, s_q_vo, s_seg, s_depth
+    assert (
+        dead_weights == [] and len(list(criterion.parameters())) == 6
+    )  # s_x, s_q (shared with the consistency terms), s_x_vo, s_q_vo, s_seg, s_depth
 
 
 def test_stage_helpers_partition_the_parameters(model):
     names = [n for n, _ in model.named_parameters()]
     assert {stream_of(n) for n in names} == set(STREAMS)
     assert stream_of("trunk.res3.0.conv1.weight") == "global" and stream_of("module.depth_head.out.bias") == "depth"
-    assert stream_of("semantic_fusion.weight_a") == "fusion" and stream_of("semantic.warp_fusion_res4f.weight_b") == "semantic"
+    assert (
+        stream_of("semantic_fusion.weight_a") == "fusion"
+        and stream_of("semantic.warp_fusion_res4f.weight_b") == "semantic"
+    )
     assert stream_of("global_stream.temporal_fusion.pool.weight") == "global"
     with pytest.raises(KeyError):
         stream_of("decoder.weight")
@@ -163,7 +173,9 @@ def test_bf16_autocast_keeps_the_pose_and_depth_heads_in_float32():
     torch.manual_seed(0)
     net = VLocNetPP(lite(input_size=(W, H))).eval()
     rng = np.random.default_rng(0)
-    net.set_pose_prior(np.array([1002.0, -1002.0, 2.0]) + rng.normal(0, 3, (200, 3)), np.tile([1.0, 0.0, 0.0, 0.0], (200, 1)))
+    net.set_pose_prior(
+        np.array([1002.0, -1002.0, 2.0]) + rng.normal(0, 3, (200, 3)), np.tile([1.0, 0.0, 0.0, 0.0], (200, 1))
+    )
     batch = random_clip_batch(2, 2, W, H)
     with torch.no_grad():
         full = net(batch["image"], batch["K"])
@@ -194,7 +206,9 @@ def test_bf16_autocast_segmentation_decoder_passes_on_the_float32_gradients():
         return [x.grad for x in inputs]
 
     for full, mixed in zip(input_grads(False), input_grads(True), strict=True):
-        assert torch.nn.functional.cosine_similarity(full.flatten(), mixed.float().flatten(), dim=0) > 0.98  # measured 0.999+
+        assert (
+            torch.nn.functional.cosine_similarity(full.flatten(), mixed.float().flatten(), dim=0) > 0.98
+        )  # measured 0.999+
 
 
 def test_a_training_clip_runs_the_odometry_res5_on_real_pairs_only():
@@ -204,13 +218,19 @@ def test_a_training_clip_runs_the_odometry_res5_on_real_pairs_only():
     torch.manual_seed(4)
     model = VLocNetPP(lite(input_size=(W, H)))
     batch = random_clip_batch(2, 2, W, H, seed=4)
-    norms = [m for m in (*model.odometry.res5.modules(), *model.odometry.head.modules()) if isinstance(m, torch.nn.BatchNorm2d)]
+    norms = [
+        m
+        for m in (*model.odometry.res5.modules(), *model.odometry.head.modules())
+        if isinstance(m, torch.nn.BatchNorm2d)
+    ]
     model.train()
     before = [int(m.num_batches_tracked) for m in norms]
     with torch.no_grad():
         first, second = model.forward_clip(batch["image"], batch["K"], tasks=("vo",))
     model.eval()
-    assert norms and all(int(m.num_batches_tracked) == n + 1 for m, n in zip(norms, before, strict=True))  # one update: the real pair
+    assert norms and all(
+        int(m.num_batches_tracked) == n + 1 for m, n in zip(norms, before, strict=True)
+    )  # one update: the real pair
     torch.testing.assert_close(first.rel_xyz, torch.zeros(2, 3), rtol=0, atol=0)
     torch.testing.assert_close(first.rel_quat, torch.tensor([[1.0, 0.0, 0.0, 0.0]] * 2), rtol=0, atol=0)
     assert "odo_res5" in second.taps and "odo_res5" not in first.taps

@@ -16,7 +16,16 @@ import rclpy
 import torch
 import yaml
 from conftest import REPO
-from node_fixtures import CAMERA, Harness, camera_frames, diagnostic_values, domain_id, image_msg, localizer_nodes, wait_until
+from node_fixtures import (
+    CAMERA,
+    Harness,
+    camera_frames,
+    diagnostic_values,
+    domain_id,
+    image_msg,
+    localizer_nodes,
+    wait_until,
+)
 from rclpy.parameter import Parameter
 from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
@@ -67,7 +76,9 @@ def test_every_bad_frame_is_skipped_counted_and_good_frames_after_it_are_answere
     def good(image, stamp):
         answered[0] += 1
         n = answered[0]
-        _send_and_wait(tester, image_msg(image, "rgb8", stamp), lambda: tester.count("seg") >= n, f"answer {n} (stamp {stamp})")
+        _send_and_wait(
+            tester, image_msg(image, "rgb8", stamp), lambda: tester.count("seg") >= n, f"answer {n} (stamp {stamp})"
+        )
 
     def bad(msg, reason):
         before = stats.rejected[reason]
@@ -118,7 +129,14 @@ def test_every_bad_frame_is_skipped_counted_and_good_frames_after_it_are_answere
 
     wait_until(lambda: (reported() or {}).get("processed") == str(answered[0]), 10.0, "diagnostics with every frame")
     values = reported()
-    for reason in ("unsupported_encoding", "data_size_mismatch", "truncated_data", "empty_image", "bad_step", "nan_output"):
+    for reason in (
+        "unsupported_encoding",
+        "data_size_mismatch",
+        "truncated_data",
+        "empty_image",
+        "bad_step",
+        "nan_output",
+    ):
         assert values[f"rejected.{reason}"] == "1", reason
     for reason in ("nan_output", "stamp_backwards", "gap", "resolution_change"):
         assert values[f"reset.{reason}"] == "1", reason
@@ -136,7 +154,8 @@ def test_encodings_and_row_padding_give_the_pose_of_the_plain_rgb8_image(make_no
     rows[:, : padded.step] = rgb.reshape(padded.height, -1)
     padded.step, padded.data = step, rows.tobytes()
     messages = [
-        image_msg(rgb, "rgb8", 0.0), padded,
+        image_msg(rgb, "rgb8", 0.0),
+        padded,
         image_msg(cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), "bgr8", 0.0),
         image_msg(cv2.cvtColor(rgb, cv2.COLOR_RGB2RGBA), "rgba8", 0.0),
         image_msg(cv2.cvtColor(rgb, cv2.COLOR_RGB2BGRA), "bgra8", 0.0),
@@ -203,20 +222,29 @@ def test_compressed_images_and_camera_info(make_node, checkpoint: Path):
 
     def compressed(rgb: np.ndarray, stamp: float) -> CompressedImage:
         ok, png = cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
-        return CompressedImage(header=Header(stamp=conversions.seconds_to_stamp(stamp), frame_id="camera"), format="rgb8; png compressed bgr8",
-                               data=png.tobytes())
+        return CompressedImage(
+            header=Header(stamp=conversions.seconds_to_stamp(stamp), frame_id="camera"),
+            format="rgb8; png compressed bgr8",
+            data=png.tobytes(),
+        )
 
     topic = CAMERA + "/compressed"
     for k, frame in enumerate(frames[:2]):
         tester.publish(topic, compressed(frame, 0.05 * k))
         wait_until(lambda k=k: tester.count("pose") > k, 30.0, f"answer {k}")
-        np.testing.assert_allclose(_pose(tester.answers("pose")[-1]), reference.step(frame, "rgb8", 0.05 * k, intrinsics=K).t, atol=1e-6)
-    garbage = CompressedImage(header=Header(stamp=conversions.seconds_to_stamp(0.1)), format="jpeg", data=b"\xff\xd8 not a jpeg")
+        np.testing.assert_allclose(
+            _pose(tester.answers("pose")[-1]), reference.step(frame, "rgb8", 0.05 * k, intrinsics=K).t, atol=1e-6
+        )
+    garbage = CompressedImage(
+        header=Header(stamp=conversions.seconds_to_stamp(0.1)), format="jpeg", data=b"\xff\xd8 not a jpeg"
+    )
     tester.publish(topic, garbage)
     wait_until(lambda: node.stats.rejected["decode_failed"] == 1, 10.0, "undecodable image rejected")
     tester.publish(topic, compressed(frames[2], 0.15))
     wait_until(lambda: tester.count("pose") == 3, 30.0, "answer after the bad one")
-    np.testing.assert_allclose(_pose(tester.answers("pose")[-1]), reference.step(frames[2], "rgb8", 0.15, intrinsics=K).t, atol=1e-6)
+    np.testing.assert_allclose(
+        _pose(tester.answers("pose")[-1]), reference.step(frames[2], "rgb8", 0.15, intrinsics=K).t, atol=1e-6
+    )
 
 
 def test_a_flood_drops_old_frames_and_answers_the_newest(make_node):
@@ -228,7 +256,9 @@ def test_a_flood_drops_old_frames_and_answers_the_newest(make_node):
     last = 0.02 * (n - 1)
     wait_until(lambda: any(abs(s - last) < 1e-6 for s in tester.stamps("pose")), 30.0, "the newest frame answered")
     stats = node.stats
-    wait_until(lambda: stats.processed + stats.dropped == stats.received, 10.0, "every received frame processed or dropped")
+    wait_until(
+        lambda: stats.processed + stats.dropped == stats.received, 10.0, "every received frame processed or dropped"
+    )
     assert stats.dropped > 0 and stats.processed < stats.received / 2
     assert tester.count("seg") == 0  # publish_segmentation false
     stamps = tester.stamps("pose")
@@ -278,7 +308,9 @@ def test_start_up_errors_are_user_errors(checkpoint: Path, tmp_path: Path, monke
     model = share / "vlocnetpp_ros" / "models" / "vlocnetpp_lite.safetensors"
     model.parent.mkdir(parents=True)
     model.write_bytes(b"")
-    monkeypatch.setenv("AMENT_PREFIX_PATH", f"{tmp_path / 'prefix'}{os.pathsep}{os.environ.get('AMENT_PREFIX_PATH', '')}")
+    monkeypatch.setenv(
+        "AMENT_PREFIX_PATH", f"{tmp_path / 'prefix'}{os.pathsep}{os.environ.get('AMENT_PREFIX_PATH', '')}"
+    )
     assert default_checkpoint() == model
 
 
@@ -329,9 +361,17 @@ def test_compressed_images_are_refused_from_their_header():
         ok, data = cv2.imencode(ext, rgb, params)
         conversions.check_image(CompressedImage(header=header, format=ext, data=data.tobytes()))  # accepted
         h, w = rgb.shape[:2]
-        assert conversions.compressed_to_rgb(CompressedImage(header=header, format=ext, data=data.tobytes())).shape == (h, w, 3)
-    cases = [(b"", "decode_failed"), (b"GIF89a" + bytes(100), "decode_failed"), (b"\xff\xd8\xff\xdb" + bytes(50), "decode_failed"),
-             (storm._BOMB, "image_too_large")]
+        assert conversions.compressed_to_rgb(CompressedImage(header=header, format=ext, data=data.tobytes())).shape == (
+            h,
+            w,
+            3,
+        )
+    cases = [
+        (b"", "decode_failed"),
+        (b"GIF89a" + bytes(100), "decode_failed"),
+        (b"\xff\xd8\xff\xdb" + bytes(50), "decode_failed"),
+        (storm._BOMB, "image_too_large"),
+    ]
     for data, reason in cases:
         with pytest.raises(FrameError) as err:
             conversions.check_image(CompressedImage(header=header, format="png", data=data))

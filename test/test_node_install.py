@@ -57,7 +57,12 @@ def rclpy_context():
 def running(colcon_install: Path, checkpoint: Path, tmp_path_factory, rclpy_context):
     """One node process (shared by the tests that only send frames) and the harness talking to it."""
     folder = tmp_path_factory.mktemp("running")
-    node = InstalledNode(colcon_install, params_file(colcon_install, folder, checkpoint=str(checkpoint), num_threads=1), folder / "node.log", DOMAIN)
+    node = InstalledNode(
+        colcon_install,
+        params_file(colcon_install, folder, checkpoint=str(checkpoint), num_threads=1),
+        folder / "node.log",
+        DOMAIN,
+    )
     harness = Harness(rclpy_context)
     try:
         harness.wait_for_subscriber(CAMERA, Image, timeout=60.0)
@@ -73,7 +78,11 @@ def _send(harness: Harness, msg, keys: tuple[str, ...] = ("pose", "odom", "seg")
     """Publish a frame and wait until its answers (by stamp) arrived on every topic of ``keys``."""
     stamp = conversions.stamp_to_seconds(msg.header.stamp)
     harness.publish(CAMERA, msg)
-    wait_until(lambda: all(any(abs(s - stamp) < 1e-9 for s in harness.stamps(k)) for k in keys), timeout, f"answers to stamp {stamp}")
+    wait_until(
+        lambda: all(any(abs(s - stamp) < 1e-9 for s in harness.stamps(k)) for k in keys),
+        timeout,
+        f"answers to stamp {stamp}",
+    )
 
 
 def _by_stamp(harness: Harness, key: str, stamp: float):
@@ -176,22 +185,33 @@ for k in range(int(sys.argv[1])):
 """
 
 
-def test_best_effort_full_size_camera_with_the_shipped_profile_then_sigint(colcon_install: Path, checkpoint: Path, tmp_path: Path, rclpy_context):
+def test_best_effort_full_size_camera_with_the_shipped_profile_then_sigint(
+    colcon_install: Path, checkpoint: Path, tmp_path: Path, rclpy_context
+):
     """A best-effort 1280x720 camera and the node both using config/fastdds_large_data.xml: every frame
     is answered (default transports lose many). Then SIGINT stops the node cleanly."""
     profile = colcon_install / "vlocnetpp_ros" / "share" / "vlocnetpp_ros" / "config" / "fastdds_large_data.xml"
     assert profile.is_file()
     env = {"FASTRTPS_DEFAULT_PROFILES_FILE": str(profile)}
-    params = params_file(colcon_install, tmp_path, checkpoint=str(checkpoint), num_threads=1, image_topic="/best_effort_camera/image_raw")
+    params = params_file(
+        colcon_install, tmp_path, checkpoint=str(checkpoint), num_threads=1, image_topic="/best_effort_camera/image_raw"
+    )
     node = InstalledNode(colcon_install, params, tmp_path / "node.log", DOMAIN, env=env)
     harness = Harness(rclpy_context)
     try:
         wait_until(lambda: harness.node.count_publishers("/vlocnet/pose") > 0, 60.0, "the node's pose publisher")
         n = 3
-        camera = subprocess.run([sys.executable, "-c", _BEST_EFFORT_CAMERA, str(n), "0.4"], env={**node.env, **env}, timeout=120,
-                                capture_output=True, text=True)
+        camera = subprocess.run(
+            [sys.executable, "-c", _BEST_EFFORT_CAMERA, str(n), "0.4"],
+            env={**node.env, **env},
+            timeout=120,
+            capture_output=True,
+            text=True,
+        )
         assert camera.returncode == 0, camera.stderr
-        wait_until(lambda: len(harness.stamps("pose")) >= n, 30.0, f"{n} answers ({harness.stamps('pose')})\n{node.output()}")
+        wait_until(
+            lambda: len(harness.stamps("pose")) >= n, 30.0, f"{n} answers ({harness.stamps('pose')})\n{node.output()}"
+        )
         assert harness.stamps("pose") == [500.0 + k for k in range(n)]
     finally:
         harness.close()
@@ -203,7 +223,9 @@ def test_best_effort_full_size_camera_with_the_shipped_profile_then_sigint(colco
 
 def test_a_missing_checkpoint_fails_with_one_clear_line(colcon_install: Path, tmp_path: Path):
     missing = tmp_path / "nowhere" / "model.safetensors"
-    node = InstalledNode(colcon_install, params_file(colcon_install, tmp_path, checkpoint=str(missing)), tmp_path / "node.log", DOMAIN)
+    node = InstalledNode(
+        colcon_install, params_file(colcon_install, tmp_path, checkpoint=str(missing)), tmp_path / "node.log", DOMAIN
+    )
     code = node.proc.wait(60)
     out = node.output()
     assert code == 1, out

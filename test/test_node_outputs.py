@@ -49,8 +49,13 @@ def make_node(checkpoint: Path, monkeypatch):
 
         def make_advertised(**params):
             node, tester = make(**params)
-            wait_until(lambda: all(tester.node.count_publishers("/vlocnet/" + t) > 0 for t in ("pose_with_covariance", "odometry")),
-                       20.0, "the outputs")
+            wait_until(
+                lambda: all(
+                    tester.node.count_publishers("/vlocnet/" + t) > 0 for t in ("pose_with_covariance", "odometry")
+                ),
+                20.0,
+                "the outputs",
+            )
             return node, tester
 
         yield make_advertised
@@ -75,7 +80,9 @@ def test_base_frame_pose_covariance_and_odometry(make_node, checkpoint: Path):
     for k, frame in enumerate(camera_frames(3, seed=9)):
         msg = image_msg(frame, "rgb8", 0.05 * k, frame_id="camera_optical")
         tester.publish(CAMERA, msg)
-        wait_until(lambda k=k: min(tester.count(key) for key in ("pose", "pwc", "odom")) > k, 30.0, f"answers to frame {k}")
+        wait_until(
+            lambda k=k: min(tester.count(key) for key in ("pose", "pwc", "odom")) > k, 30.0, f"answers to frame {k}"
+        )
         camera = reference.step(frame, "rgb8", conversions.stamp_to_seconds(msg.header.stamp))
         pose, pwc, odom = tester.answers("pose")[-1], tester.answers("pwc")[-1], tester.answers("odom")[-1]
         assert pose.header == pwc.header == type(pose.header)(stamp=msg.header.stamp, frame_id="map")
@@ -85,10 +92,14 @@ def test_base_frame_pose_covariance_and_odometry(make_node, checkpoint: Path):
         assert np.array_equal(cov, cov.T) and np.all(np.diag(cov) > 0)
         # the base's pose = the camera's (Localizer on the same frame) times the inverse extrinsics
         np.testing.assert_allclose(_msg_matrix(pose.pose), _matrix(camera.t, camera.q) @ np.linalg.inv(E), atol=1e-6)
-        np.testing.assert_allclose(cov, extrinsics.base_pose_covariance(camera.pose_covariance, camera.q, ext), rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(
+            cov, extrinsics.base_pose_covariance(camera.pose_covariance, camera.q, ext), rtol=1e-9, atol=1e-12
+        )
         assert not np.allclose(cov, camera.pose_covariance)  # rotated about the base's axes, lever arm
         # odometry of the base: identity at the start, the camera's conjugated by the extrinsics
-        np.testing.assert_allclose(_msg_matrix(odom.pose.pose), E @ _matrix(camera.odom_t, camera.odom_q) @ np.linalg.inv(E), atol=1e-6)
+        np.testing.assert_allclose(
+            _msg_matrix(odom.pose.pose), E @ _matrix(camera.odom_t, camera.odom_q) @ np.linalg.inv(E), atol=1e-6
+        )
         odom_cov = np.asarray(odom.pose.covariance).reshape(6, 6)
         assert np.array_equal(odom_cov, odom_cov.T) and np.all(np.diag(odom_cov) > 0)
         twist = odom.twist.twist
@@ -128,7 +139,9 @@ def test_a_pose_only_model_publishes_poses_and_advertises_no_segmentation(make_n
     for k, frame in enumerate(camera_frames(2, seed=11)):
         msg = image_msg(frame, "rgb8", 2.0 + 0.05 * k, frame_id="camera_optical")
         tester.publish(CAMERA, msg)
-        wait_until(lambda k=k: min(tester.count(key) for key in ("pose", "pwc", "odom")) > k, 30.0, f"answers to frame {k}")
+        wait_until(
+            lambda k=k: min(tester.count(key) for key in ("pose", "pwc", "odom")) > k, 30.0, f"answers to frame {k}"
+        )
         want = reference.step(frame, "rgb8", conversions.stamp_to_seconds(msg.header.stamp))
         assert want.mask is None
         pose, pwc, odom = tester.answers("pose")[-1], tester.answers("pwc")[-1], tester.answers("odom")[-1]
@@ -151,10 +164,17 @@ def test_bad_camera_extrinsics_stop_the_node_with_a_clear_error(checkpoint: Path
         ]
         for params, message in cases:
             with pytest.raises(UserError, match=message):
-                LocalizerNode(context=ctx, parameter_overrides=[Parameter(k, value=v) for k, v in {**base, **params}.items()])
+                LocalizerNode(
+                    context=ctx, parameter_overrides=[Parameter(k, value=v) for k, v in {**base, **params}.items()]
+                )
         # integers are numbers too
-        node = LocalizerNode(context=ctx, parameter_overrides=[Parameter(k, value=v) for k, v in
-                                                               {**base, "camera_extrinsics": [0, 0, 1, 1, 0, 0, 0], "num_threads": 1}.items()])
+        node = LocalizerNode(
+            context=ctx,
+            parameter_overrides=[
+                Parameter(k, value=v)
+                for k, v in {**base, "camera_extrinsics": [0, 0, 1, 1, 0, 0, 0], "num_threads": 1}.items()
+            ],
+        )
         assert node.extrinsics.values() == [0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0]
         node.close()
         node.destroy_node()
@@ -162,9 +182,25 @@ def test_bad_camera_extrinsics_stop_the_node_with_a_clear_error(checkpoint: Path
         ctx.try_shutdown()
     # the node as a program: one error line, exit code 1
     env = dict(os.environ, ROS_DOMAIN_ID=str(DOMAIN), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
-    proc = subprocess.run([sys.executable, "-m", "vlocnetpp_ros.node", "--ros-args", "-p", f"checkpoint:={checkpoint}",
-                           "-p", "base_frame:=base_link", "-p", "camera_extrinsics:=[0.0, 0.0, 0.0, 0.5, 0.0, 0.0, 0.0]"],
-                          cwd=REPO, env=env, capture_output=True, text=True, timeout=120)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "vlocnetpp_ros.node",
+            "--ros-args",
+            "-p",
+            f"checkpoint:={checkpoint}",
+            "-p",
+            "base_frame:=base_link",
+            "-p",
+            "camera_extrinsics:=[0.0, 0.0, 0.0, 0.5, 0.0, 0.0, 0.0]",
+        ],
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     output = proc.stdout + proc.stderr
     assert proc.returncode == 1, output
     assert "cannot start: parameter camera_extrinsics must be 7 numbers" in output and "norm 0.5" in output

@@ -55,7 +55,14 @@ GOOD_EVERY = 50  # a good frame to each node after this many malformed messages
 PAUSE_S = 0.001  # after every 10 messages: bursts of 10 at once, faster than the nodes' executors take them
 W, H = 640, 480  # storm frame size: fragmented (above the 64 KB UDP fragment), as camera images are
 # publisher kinds, in this order: reliable ones while the nodes' subscriptions are reliable
-KINDS = (("reliable", 1), ("reliable", 10), ("reliable", 50), ("best_effort", 1), ("best_effort", 10), ("best_effort", 50))
+KINDS = (
+    ("reliable", 1),
+    ("reliable", 10),
+    ("reliable", 50),
+    ("best_effort", 1),
+    ("best_effort", 10),
+    ("best_effort", 50),
+)
 # RSS growth allowed from the end of a phase's first storm to the end of its second (the same messages
 # again). With the node's DYNAMIC history memory policy (vlocnetpp_ros/dds_profile.py) it moves by
 # < 1-2 MiB (it returns freed heap pages every second); with rmw_fastrtps's PREALLOCATED_WITH_REALLOC
@@ -66,7 +73,12 @@ THROTTLE_S = 5.0  # ThrottledLog's period in the node
 RAW = {"image": "/storm/image_raw", "depth": "/storm/depth", "camera_info": "/storm/camera_info"}
 COMPRESSED_NS = "/compressed_node"
 COMPRESSED = {"compressed": "/storm_c/image_raw/compressed"}
-TOPIC_TYPES = {RAW["image"]: Image, RAW["depth"]: Image, RAW["camera_info"]: CameraInfo, COMPRESSED["compressed"]: CompressedImage}
+TOPIC_TYPES = {
+    RAW["image"]: Image,
+    RAW["depth"]: Image,
+    RAW["camera_info"]: CameraInfo,
+    COMPRESSED["compressed"]: CompressedImage,
+}
 
 
 @pytest.fixture(scope="module")
@@ -77,7 +89,9 @@ def checkpoint(tmp_path_factory) -> Path:
 def _png(rgb: np.ndarray, stamp: float) -> CompressedImage:
     ok, png = cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
     assert ok
-    return CompressedImage(header=Header(stamp=conversions.seconds_to_stamp(stamp), frame_id="camera"), format="png", data=png.tobytes())
+    return CompressedImage(
+        header=Header(stamp=conversions.seconds_to_stamp(stamp), frame_id="camera"), format="png", data=png.tobytes()
+    )
 
 
 class _Storm:
@@ -108,8 +122,10 @@ class _Storm:
         raw_classes, compressed_classes = storm.classes_for(list(RAW)), storm.classes_for(list(COMPRESSED))
         topics = {**RAW, **COMPRESSED}
         n_compressed = STORM_SIZE * len(compressed_classes) // len(raw_classes + compressed_classes)
-        streams = (storm.bad_messages(rng, raw_classes, STORM_SIZE - n_compressed, 0.0, W, H),
-                   storm.bad_messages(rng, compressed_classes, n_compressed, 0.0, W, H))
+        streams = (
+            storm.bad_messages(rng, raw_classes, STORM_SIZE - n_compressed, 0.0, W, H),
+            storm.bad_messages(rng, compressed_classes, n_compressed, 0.0, W, H),
+        )
         order = rng.permutation(np.repeat([0, 1], [STORM_SIZE - n_compressed, n_compressed]))
         for i, which in enumerate(order):
             cls, msg = next(streams[which])
@@ -127,16 +143,22 @@ class _Storm:
     def use(self, reliability: str, depth: int) -> None:
         """Publishers of this kind on every input topic instead of the last ones; returns once both nodes match them
         (a best-effort publisher makes a reliable subscription subscribe again)."""
-        qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth,
-                         reliability=ReliabilityPolicy.RELIABLE if reliability == "reliable" else ReliabilityPolicy.BEST_EFFORT)
+        qos = QoSProfile(
+            history=HistoryPolicy.KEEP_LAST,
+            depth=depth,
+            reliability=ReliabilityPolicy.RELIABLE if reliability == "reliable" else ReliabilityPolicy.BEST_EFFORT,
+        )
         for topic, msg_type in TOPIC_TYPES.items():
             old = self.harness.publishers.pop(topic, None)
             if old is not None:
                 self.harness.node.destroy_publisher(old)
             self.harness.publishers[topic] = self.harness.node.create_publisher(msg_type, topic, qos)
         for topic in TOPIC_TYPES:
-            wait_until(lambda topic=topic: self.harness.publishers[topic].get_subscription_count() > 0, 30.0,
-                       f"the node subscribed to {topic} matching a {reliability} publisher")
+            wait_until(
+                lambda topic=topic: self.harness.publishers[topic].get_subscription_count() > 0,
+                30.0,
+                f"the node subscribed to {topic} matching a {reliability} publisher",
+            )
 
     def answered(self, same: bool = True, timeout: float = 60.0) -> tuple[float, PoseStamped, PoseStamped]:
         """Good frames after a stamp gap (each localised from the image alone), sent until both nodes answered one of them
@@ -144,7 +166,9 @@ class _Storm:
         of the last answered (fails when a node died or did not answer)."""
 
         def find(poses, stamps):
-            return next((p for p in reversed(list(poses)) if conversions.stamp_to_seconds(p.header.stamp) in stamps), None)
+            return next(
+                (p for p in reversed(list(poses)) if conversions.stamp_to_seconds(p.header.stamp) in stamps), None
+            )
 
         end, stamps = time.monotonic() + timeout, set()
         while time.monotonic() < end:
@@ -169,13 +193,17 @@ class _Storm:
             return sum(d.status[0].hardware_id == name for d in self.harness.answers("diag"))
 
         start = {name: count(name) for name in names}
-        wait_until(lambda: all(count(name) >= start[name] + 2 for name in names), 20.0, "two more diagnostics of each node")
+        wait_until(
+            lambda: all(count(name) >= start[name] + 2 for name in names), 20.0, "two more diagnostics of each node"
+        )
 
     def diagnostics(self, node_name: str) -> dict[str, str]:
         """The node's latest diagnostics once they count every frame it received as processed, dropped or rejected."""
 
         def latest() -> dict[str, str]:
-            diags: list[DiagnosticArray] = [d for d in self.harness.answers("diag") if d.status[0].hardware_id == node_name]
+            diags: list[DiagnosticArray] = [
+                d for d in self.harness.answers("diag") if d.status[0].hardware_id == node_name
+            ]
             values = diagnostic_values(diags[-1]) if diags else {}
             done = sum(int(values.get(k, -1)) for k in ("processed", "dropped", "rejected"))
             return values if values and int(values["received"]) == done else {}
@@ -195,7 +223,9 @@ def _float64_first_frame_pose(checkpoint: Path, frame: np.ndarray, stamp: float)
     return np.concatenate((result.t, result.q))
 
 
-def _assert_first_frame_pose(got: PoseStamped, localizer: Localizer, frame: np.ndarray, stamp: float, exact: np.ndarray) -> None:
+def _assert_first_frame_pose(
+    got: PoseStamped, localizer: Localizer, frame: np.ndarray, stamp: float, exact: np.ndarray
+) -> None:
     """``got`` is the pose of ``frame`` localised from the image alone (the stamp jump reset the state; a
     first frame has nothing to warp, so the depth image sent with it does not change its outputs).
 
@@ -237,18 +267,38 @@ def _run_phases(run: _Storm, raw: InstalledNode, compressed: InstalledNode) -> t
     return rss, reliable_answer
 
 
-def test_storms_from_any_publisher_leave_memory_flat_and_the_nodes_answering(colcon_install: Path, checkpoint: Path, tmp_path: Path,
-                                                                             monkeypatch):
+def test_storms_from_any_publisher_leave_memory_flat_and_the_nodes_answering(
+    colcon_install: Path, checkpoint: Path, tmp_path: Path, monkeypatch
+):
     monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    monkeypatch.setenv("VLOCNETPP_CACHE", str(tmp_path / "cache"))  # the onnx node's export, reused by the reference below
+    monkeypatch.setenv(
+        "VLOCNETPP_CACHE", str(tmp_path / "cache")
+    )  # the onnx node's export, reused by the reference below
     started = time.monotonic()
     common = {"checkpoint": str(checkpoint), "num_threads": 1}
-    raw = InstalledNode(colcon_install, params_file(colcon_install, tmp_path, **common, image_topic=RAW["image"], depth_topic=RAW["depth"],
-                                                    camera_info_topic=RAW["camera_info"]), tmp_path / "raw.log", DOMAIN)
-    compressed = InstalledNode(colcon_install, params_file(colcon_install, tmp_path, **common, image_topic="/storm_c/image_raw",
-                                                           use_compressed=True, backend="onnx"),
-                               tmp_path / "compressed.log", DOMAIN, env={"VLOCNETPP_CACHE": str(tmp_path / "cache")},
-                               args=("-r", f"__ns:={COMPRESSED_NS}"))
+    raw = InstalledNode(
+        colcon_install,
+        params_file(
+            colcon_install,
+            tmp_path,
+            **common,
+            image_topic=RAW["image"],
+            depth_topic=RAW["depth"],
+            camera_info_topic=RAW["camera_info"],
+        ),
+        tmp_path / "raw.log",
+        DOMAIN,
+    )
+    compressed = InstalledNode(
+        colcon_install,
+        params_file(
+            colcon_install, tmp_path, **common, image_topic="/storm_c/image_raw", use_compressed=True, backend="onnx"
+        ),
+        tmp_path / "compressed.log",
+        DOMAIN,
+        env={"VLOCNETPP_CACHE": str(tmp_path / "cache")},
+        args=("-r", f"__ns:={COMPRESSED_NS}"),
+    )
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=DOMAIN)
     harness = Harness(ctx)
@@ -259,15 +309,19 @@ def test_storms_from_any_publisher_leave_memory_flat_and_the_nodes_answering(col
         run.answered()  # both nodes up and warm
         rss, (stamp, *poses) = _run_phases(run, raw, compressed)
         grown = {kind: (b[0] - a[0], b[1] - a[1]) for kind, (a, b) in rss.items()}
-        table = "\n".join(f"{r}:{d}: RSS after storms 1, 2 (MiB, raw / compressed) {a[0]:.1f} / {a[1]:.1f}, {b[0]:.1f} / {b[1]:.1f}"
-                          for (r, d), (a, b) in rss.items())
+        table = "\n".join(
+            f"{r}:{d}: RSS after storms 1, 2 (MiB, raw / compressed) {a[0]:.1f} / {a[1]:.1f}, {b[0]:.1f} / {b[1]:.1f}"
+            for (r, d), (a, b) in rss.items()
+        )
         print(table)  # shown with pytest -s
         assert all(max(g) < RSS_GROWTH_MB for g in grown.values()), table
 
         frame = run.frames[0]
         exact = _float64_first_frame_pose(checkpoint, frame, stamp)
         _assert_first_frame_pose(poses[0], Localizer.from_checkpoint(checkpoint, num_threads=1), frame, stamp, exact)
-        _assert_first_frame_pose(poses[1], Localizer.from_checkpoint(checkpoint, num_threads=1, backend="onnx"), frame, stamp, exact)
+        _assert_first_frame_pose(
+            poses[1], Localizer.from_checkpoint(checkpoint, num_threads=1, backend="onnx"), frame, stamp, exact
+        )
 
         counted = Counter()
         for node_name in ("/localizer", f"{COMPRESSED_NS}/localizer"):
@@ -294,5 +348,7 @@ def test_storms_from_any_publisher_leave_memory_flat_and_the_nodes_answering(col
     for node, code in zip((raw, compressed), codes, strict=True):
         out = node.output()
         assert code == 0 and "Traceback" not in out, out[-3000:]
-        assert "DataReaders use the DYNAMIC history memory policy" in out, out[-3000:]  # vlocnetpp_ros/dds_profile.py applied
+        assert "DataReaders use the DYNAMIC history memory policy" in out, out[
+            -3000:
+        ]  # vlocnetpp_ros/dds_profile.py applied
         _throttled(out, lifetime)

@@ -32,7 +32,9 @@ HEADS = ("xyz", "quat", "rel_xyz", "rel_quat")
 def _frames(n: int, height: int = 120, width: int = 200, seed: int = 0) -> list[np.ndarray]:
     """Smooth random RGB frames of a camera panning over a texture."""
     rng = np.random.default_rng(seed)
-    base = cv2.resize(rng.integers(0, 256, (height // 6 + 4, width // 6 + 4, 3), dtype=np.uint8), (width + 5 * n, height + 2 * n))
+    base = cv2.resize(
+        rng.integers(0, 256, (height // 6 + 4, width // 6 + 4, 3), dtype=np.uint8), (width + 5 * n, height + 2 * n)
+    )
     return [np.ascontiguousarray(base[2 * k : 2 * k + height, 5 * k : 5 * k + width]) for k in range(n)]
 
 
@@ -58,7 +60,9 @@ def exported(tmp_path_factory) -> tuple[Path, Path]:
 
 def _assert_same(ref, got, what: str) -> None:
     for head in HEADS:
-        np.testing.assert_allclose(getattr(got, head).numpy(), getattr(ref, head).numpy(), atol=POSE_TOL, rtol=0, err_msg=f"{what} {head}")
+        np.testing.assert_allclose(
+            getattr(got, head).numpy(), getattr(ref, head).numpy(), atol=POSE_TOL, rtol=0, err_msg=f"{what} {head}"
+        )
     scale = float(ref.seg_logits.abs().max())
     assert float((got.seg_logits - ref.seg_logits).abs().max()) < LOGIT_TOL * scale, f"{what} seg_logits"
 
@@ -119,7 +123,9 @@ def test_localizer_onnx_backend_agrees_with_torch_through_resets(exported):
         a, b = torch_loc.step(rgb, "rgb8", stamp), onnx_loc.step(rgb, "rgb8", stamp)
         assert a.reset_reason == b.reset_reason
         for field in ("t", "q", "rel_t", "rel_q", "odom_t", "odom_q"):
-            np.testing.assert_allclose(getattr(b, field), getattr(a, field), atol=POSE_TOL, err_msg=f"frame {k} {field}")
+            np.testing.assert_allclose(
+                getattr(b, field), getattr(a, field), atol=POSE_TOL, err_msg=f"frame {k} {field}"
+            )
         assert b.mask.shape == a.mask.shape and (b.mask == a.mask).mean() > 0.999, f"frame {k} mask"
 
 
@@ -141,12 +147,27 @@ def test_export_cli_and_errors(exported, tmp_path, capsys):
     assert main(["export-onnx", "--checkpoint", str(ckpt), "--out", str(out)]) == 0
     assert "streaming step at 224x128" in capsys.readouterr().out
     meta = read_metadata(out)
-    assert meta["weights_id"] == read_checkpoint_meta(ckpt)["weights_id"] and json.loads(meta["state_names"])[0] == "res5a"
+    assert (
+        meta["weights_id"] == read_checkpoint_meta(ckpt)["weights_id"] and json.loads(meta["state_names"])[0] == "res5a"
+    )
     names = [i.name for i in onnx.load(str(out), load_external_data=False).graph.input]
-    assert names == ["image", "K", "depth", "use_depth", "first", "state_res5a", "state_odo_res4", "state_sem_res4f", "state_sem_res5c"]
+    assert names == [
+        "image",
+        "K",
+        "depth",
+        "use_depth",
+        "first",
+        "state_res5a",
+        "state_odo_res4",
+        "state_sem_res4f",
+        "state_sem_res5c",
+    ]
     assert main(["export-onnx", "--checkpoint", str(ckpt), "--out", str(out)]) == 2
     assert "exists" in capsys.readouterr().err
-    assert main(["export-onnx", "--checkpoint", str(tmp_path / "missing.safetensors"), "--out", str(tmp_path / "x.onnx")]) == 2
+    assert (
+        main(["export-onnx", "--checkpoint", str(tmp_path / "missing.safetensors"), "--out", str(tmp_path / "x.onnx")])
+        == 2
+    )
     err = capsys.readouterr().err
     assert "missing.safetensors" in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "x.onnx").exists() and not list(tmp_path.glob(".x.onnx.*"))
@@ -176,7 +197,10 @@ def test_node_runs_the_onnx_backend(exported, monkeypatch):
     params = {"checkpoint": str(ckpt), "num_threads": 1, "backend": "onnx"}
     try:
         with pytest.raises(UserError, match="backend must be"):
-            LocalizerNode(context=ctx, parameter_overrides=[Parameter(k, value=v) for k, v in {**params, "backend": "trt"}.items()])
+            LocalizerNode(
+                context=ctx,
+                parameter_overrides=[Parameter(k, value=v) for k, v in {**params, "backend": "trt"}.items()],
+            )
         with monkeypatch.context() as m:  # onnxruntime is an optional package: without it the node names it and stops
             m.setitem(sys.modules, "onnxruntime", None)
             with pytest.raises(UserError, match="backend 'onnx' needs the Python package 'onnxruntime'"):

@@ -40,8 +40,14 @@ FRAMES = 16  # per loop, at 20 Hz: the test loop starts 2 x (0.75 s + 10 s gap) 
 
 def vlocnetpp(*args: str, timeout: float = 600.0) -> str:
     env = dict(os.environ, ROS_DOMAIN_ID=str(150 + os.getpid() % 50), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
-    proc = subprocess.run([sys.executable, "-m", "vlocnetpp_core.cli", *args], cwd=REPO, env=env, capture_output=True, text=True,
-                          timeout=timeout)
+    proc = subprocess.run(
+        [sys.executable, "-m", "vlocnetpp_core.cli", *args],
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
     assert proc.returncode == 0, f"vlocnetpp {' '.join(args)}:\n{proc.stdout}\n{proc.stderr}"
     return proc.stdout
 
@@ -50,23 +56,62 @@ def vlocnetpp(*args: str, timeout: float = 600.0) -> str:
 def robot_bag(tmp_path_factory) -> tuple[Path, Path]:
     root = tmp_path_factory.mktemp("own_robot")
     campus = root / "campus"
-    vlocnetpp("synth", str(campus), "--loops", "2", "--test-loops", "1", "--frames-per-loop", str(FRAMES), "--size", "128x72",
-              "--seed", "5", "--no-progress")
+    vlocnetpp(
+        "synth",
+        str(campus),
+        "--loops",
+        "2",
+        "--test-loops",
+        "1",
+        "--frames-per-loop",
+        str(FRAMES),
+        "--size",
+        "128x72",
+        "--seed",
+        "5",
+        "--no-progress",
+    )
     bag = root / "robot.mcap"
-    vlocnetpp("convert", str(campus), str(bag), "--split", "all", "--compress", "png", "--robot-frame", "base_link",
-              "--camera-extrinsics", EXTRINSICS, "--no-labels", "--no-progress")
+    vlocnetpp(
+        "convert",
+        str(campus),
+        str(bag),
+        "--split",
+        "all",
+        "--compress",
+        "png",
+        "--robot-frame",
+        "base_link",
+        "--camera-extrinsics",
+        EXTRINSICS,
+        "--no-labels",
+        "--no-progress",
+    )
     return campus, bag
 
 
 def test_a_robot_bag_becomes_a_dataset_a_model_and_a_scored_node_run(robot_bag, tmp_path):
     campus, bag = robot_bag
     with BagReader(bag) as reader:
-        assert {TF_TOPIC, TF_STATIC_TOPIC} <= set(reader.topics) and not {GROUND_TRUTH_TOPIC, SEMANTIC_TOPIC} & set(reader.topics)
+        assert {TF_TOPIC, TF_STATIC_TOPIC} <= set(reader.topics) and not {GROUND_TRUTH_TOPIC, SEMANTIC_TOPIC} & set(
+            reader.topics
+        )
 
     # 1. extract: the camera poses of the source dataset come back from /tf + the extrinsics
     data = tmp_path / "dataset"
-    vlocnetpp("extract", str(bag), str(data), "--tf", "map", "base_link", "--camera-extrinsics", EXTRINSICS,
-              "--test-ranges", "20:", "--no-progress")
+    vlocnetpp(
+        "extract",
+        str(bag),
+        str(data),
+        "--tf",
+        "map",
+        "base_link",
+        "--camera-extrinsics",
+        EXTRINSICS,
+        "--test-ranges",
+        "20:",
+        "--no-progress",
+    )
     for split, loops in (("train", 2), ("test", 1)):
         got, want = open_dataset(data, None, split), open_dataset(campus, None, split)
         assert len(got.sequences) == loops and len(got) == len(want) == loops * FRAMES
@@ -77,22 +122,69 @@ def test_a_robot_bag_becomes_a_dataset_a_model_and_a_scored_node_run(robot_bag, 
     config = tmp_path / "tiny_pose.yaml"
     config.write_text(yaml.safe_dump({**load_model_config("lite_pose").to_dict(), "input_size": [64, 48]}))
     run = tmp_path / "stl-loc"
-    vlocnetpp("train", "--config", str(config), "--data", str(data), "--stage", "stl-loc", "--out", str(run), "--steps", "20",
-              "--batch-size", "4", "--clip-len", "2", "--workers", "0", "--threads", "1", "--s-q-init", "0", "--no-progress")
+    vlocnetpp(
+        "train",
+        "--config",
+        str(config),
+        "--data",
+        str(data),
+        "--stage",
+        "stl-loc",
+        "--out",
+        str(run),
+        "--steps",
+        "20",
+        "--batch-size",
+        "4",
+        "--clip-len",
+        "2",
+        "--workers",
+        "0",
+        "--threads",
+        "1",
+        "--s-q-init",
+        "0",
+        "--no-progress",
+    )
     checkpoint = run / "last.safetensors"
 
     # 3. the real node over DDS on the robot's bag: pose outputs, no segmentation topic
     out = tmp_path / "localized.mcap"
-    summary = vlocnetpp("replay", str(bag), "--checkpoint", str(checkpoint), "--out", str(out), "--through-node", "--rate", "max",
-                        "--no-progress")
+    summary = vlocnetpp(
+        "replay",
+        str(bag),
+        "--checkpoint",
+        str(checkpoint),
+        "--out",
+        str(out),
+        "--through-node",
+        "--rate",
+        "max",
+        "--no-progress",
+    )
     assert f"{3 * FRAMES} frames localized" in summary
     with BagReader(out) as reader:
-        assert {POSE_TOPIC, POSE_WITH_COVARIANCE_TOPIC} <= set(reader.topics) and SEGMENTATION_TOPIC not in reader.topics
+        assert {POSE_TOPIC, POSE_WITH_COVARIANCE_TOPIC} <= set(
+            reader.topics
+        ) and SEGMENTATION_TOPIC not in reader.topics
 
     # 4. evaluate-bag with the ground truth from /tf: every frame scored against the dataset's camera poses
     report_path, traj = tmp_path / "report.json", tmp_path / "traj"
-    vlocnetpp("evaluate-bag", str(out), "--tf", "map", "base_link", "--camera-extrinsics", EXTRINSICS, "--reference", str(data),
-              "--json", str(report_path), "--trajectories", str(traj))
+    vlocnetpp(
+        "evaluate-bag",
+        str(out),
+        "--tf",
+        "map",
+        "base_link",
+        "--camera-extrinsics",
+        EXTRINSICS,
+        "--reference",
+        str(data),
+        "--json",
+        str(report_path),
+        "--trajectories",
+        str(traj),
+    )
     report = json.loads(report_path.read_text())
     assert sorted(report["per_sequence"]) == ["seq-00", "seq-01", "seq-02"]
     assert report["baseline"]["name"] == "retrieval" and report["baseline"]["reference_frames"] == 2 * FRAMES

@@ -25,9 +25,13 @@ def test_colcon_install_tree_has_what_ros2_run_needs(colcon_install: Path):
         assert (share / "config" / name).is_file(), name
     assert (prefix / "share" / "ament_index" / "resource_index" / "packages" / "vlocnetpp_ros").is_file()
     # ament_index_python finds the package once the install tree is on AMENT_PREFIX_PATH
-    code = "from ament_index_python.packages import get_package_prefix, get_package_share_directory as s;" \
+    code = (
+        "from ament_index_python.packages import get_package_prefix, get_package_share_directory as s;"
         "print(get_package_prefix('vlocnetpp_ros')); print(s('vlocnetpp_ros'))"
-    out = subprocess.run([sys.executable, "-c", code], env=install_env(colcon_install), capture_output=True, text=True, check=True)
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], env=install_env(colcon_install), capture_output=True, text=True, check=True
+    )
     lines = out.stdout.split()
     assert Path(lines[0]) == prefix and Path(lines[1]) == share
 
@@ -41,7 +45,9 @@ def test_installed_cli_runs_from_install_tree(colcon_install: Path):
     for name in ("vlocnetpp-replay-node", "vlocnetpp-latency-bench", "vlocnetpp-soak"):
         assert (exe.parent / name).is_file(), name
     # the ROS programs the core starts are found from the install tree's metadata, by name
-    code = "from vlocnetpp_core.programs import program_command as p; print(p('replay-node')[-1], p('latency-bench')[-1])"
+    code = (
+        "from vlocnetpp_core.programs import program_command as p; print(p('replay-node')[-1], p('latency-bench')[-1])"
+    )
     out = subprocess.run([sys.executable, "-c", code], env=env, cwd="/", capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
     assert out.stdout.split() == ["vlocnetpp_ros.replay_bridge", "vlocnetpp_ros.latency_bench"]
@@ -70,11 +76,22 @@ def _imports(path: Path) -> set[str]:
 
 
 def test_core_never_imports_ros():
-    ros = {"rclpy", "sensor_msgs", "geometry_msgs", "nav_msgs", "std_msgs", "diagnostic_msgs", "builtin_interfaces", "vlocnetpp_ros"}
+    ros = {
+        "rclpy",
+        "sensor_msgs",
+        "geometry_msgs",
+        "nav_msgs",
+        "std_msgs",
+        "diagnostic_msgs",
+        "builtin_interfaces",
+        "vlocnetpp_ros",
+    }
     offenders = {str(p.relative_to(REPO)): sorted(_imports(p) & ros) for p in (REPO / "vlocnetpp_core").rglob("*.py")}
     assert not {k: v for k, v in offenders.items() if v}
     # nor starts a module of the ROS package by name (it asks for a registered program: vlocnetpp_core/programs.py)
-    named = [str(p.relative_to(REPO)) for p in (REPO / "vlocnetpp_core").rglob("*.py") if "vlocnetpp_ros." in p.read_text()]
+    named = [
+        str(p.relative_to(REPO)) for p in (REPO / "vlocnetpp_core").rglob("*.py") if "vlocnetpp_ros." in p.read_text()
+    ]
     assert not named
     # and importing every core module at runtime does not pull rclpy in
     code = (
@@ -89,7 +106,9 @@ def test_core_never_imports_ros():
 
 
 def test_cli_lists_subcommands():
-    out = subprocess.run([sys.executable, "-m", "vlocnetpp_core.cli", "--help"], cwd=REPO, capture_output=True, text=True, timeout=60)
+    out = subprocess.run(
+        [sys.executable, "-m", "vlocnetpp_core.cli", "--help"], cwd=REPO, capture_output=True, text=True, timeout=60
+    )
     assert out.returncode == 0
     for name in COMMANDS:
         assert name in out.stdout
@@ -97,7 +116,13 @@ def test_cli_lists_subcommands():
 
 @pytest.mark.parametrize("name", list(COMMANDS))
 def test_every_subcommand_has_help(name: str):
-    out = subprocess.run([sys.executable, "-m", "vlocnetpp_core.cli", name, "--help"], cwd=REPO, capture_output=True, text=True, timeout=60)
+    out = subprocess.run(
+        [sys.executable, "-m", "vlocnetpp_core.cli", name, "--help"],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert out.returncode == 0, out.stderr
     assert out.stdout.startswith("usage: vlocnetpp " + name)
 

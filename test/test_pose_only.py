@@ -49,9 +49,15 @@ def test_lite_pose_is_lite_without_the_semantic_stream():
     cut_names = {n: p.shape for n, p in cut.named_parameters()}
     assert not [n for n in cut_names if n.startswith(("semantic", "depth_head"))]
     # exactly the global and odometry weights of the full network, same shapes: its pose streams load into it
-    assert cut_names == {n: p.shape for n, p in full.named_parameters() if n.startswith(("trunk.", "global_stream.", "odometry."))}
+    assert cut_names == {
+        n: p.shape for n, p in full.named_parameters() if n.startswith(("trunk.", "global_stream.", "odometry."))
+    }
     counts = params_per_stream(cut)
-    assert counts["semantic"] == counts["depth"] == counts["fusion"] == 0 and counts["global"] > 0 and counts["odometry"] > 0
+    assert (
+        counts["semantic"] == counts["depth"] == counts["fusion"] == 0
+        and counts["global"] > 0
+        and counts["odometry"] > 0
+    )
 
 
 def test_step_and_clip_give_poses_and_no_segmentation():
@@ -66,10 +72,17 @@ def test_step_and_clip_give_poses_and_no_segmentation():
         for t in range(3):
             o, state = model.step(images[:, t], state)
             streamed.append(o)
-    assert out.xyz.shape == (2, 3) and out.quat.shape == (2, 4) and out.rel_xyz.shape == (2, 3) and out.rel_quat.shape == (2, 4)
+    assert (
+        out.xyz.shape == (2, 3)
+        and out.quat.shape == (2, 4)
+        and out.rel_xyz.shape == (2, 3)
+        and out.rel_quat.shape == (2, 4)
+    )
     assert out.seg_logits is None and out.depth is None
     assert not [k for k in out.taps if k.startswith("sem_")] and "res4c_fused" not in out.taps
-    assert state.sem_res4f is None and state.sem_res5c is None and state.res5a is not None and state.odo_res4 is not None
+    assert (
+        state.sem_res4f is None and state.sem_res5c is None and state.res5a is not None and state.odo_res4 is not None
+    )
     assert len(clip) == 3 and all(o.seg_logits is None and o.xyz is not None and o.rel_xyz is not None for o in clip)
     for a, b in zip(clip, streamed, strict=True):  # eval mode: streaming equals the clip forward
         torch.testing.assert_close(a.xyz, b.xyz)
@@ -86,7 +99,9 @@ def test_seg_is_refused_and_inconsistent_switches_are_errors(tmp_path):
     with pytest.raises(ValueError, match="but semantic_fusion is true.*set semantic_fusion: false"):
         ModelConfig(semantic_stream=False, warping=False)
     path = tmp_path / "bad.yaml"
-    path.write_text(yaml.safe_dump({**load_model_config("lite").to_dict(), "semantic_stream": False, "semantic_fusion": False}))
+    path.write_text(
+        yaml.safe_dump({**load_model_config("lite").to_dict(), "semantic_stream": False, "semantic_fusion": False})
+    )
     with pytest.raises(DataError, match=r"bad\.yaml.*but warping is true"):
         load_model_config(path)
     assert stage_tasks("mtl", ("loc", "vo")) == ("loc", "vo") and stage_tasks("stl-vo", ("loc", "vo")) == ("vo",)
@@ -94,7 +109,9 @@ def test_seg_is_refused_and_inconsistent_switches_are_errors(tmp_path):
         stage_tasks("stl-seg", ("loc", "vo"))
     # what evaluate reads from a sidecar: an mtl run of a pose-only network trained loc and vo, nothing else
     assert trained_tasks({"stage": "mtl", "step": 5}, ("loc", "vo")) == {"loc", "vo"}
-    assert trained_tasks({"stage": "mtl", "step": 0, "init": [{"stage": "stl-loc"}, {"stage": "stl-seg"}]}, ("loc", "vo")) == {"loc"}
+    assert trained_tasks(
+        {"stage": "mtl", "step": 0, "init": [{"stage": "stl-loc"}, {"stage": "stl-seg"}]}, ("loc", "vo")
+    ) == {"loc"}
 
 
 def test_model_info_of_lite_pose(capsys):
@@ -102,7 +119,11 @@ def test_model_info_of_lite_pose(capsys):
     info = json.loads(capsys.readouterr().out)
     assert info["tasks"] == ["loc", "vo"] and info["switches"]["semantic_stream"] is False
     assert set(info["params_trained_per_stage"]) == {"stl-loc", "stl-vo", "mtl"}
-    assert info["params_trained_per_stage"]["mtl"] == info["params_total"] == info["params_per_stream"]["global"] + info["params_per_stream"]["odometry"]
+    assert (
+        info["params_trained_per_stage"]["mtl"]
+        == info["params_total"]
+        == info["params_per_stream"]["global"] + info["params_per_stream"]["odometry"]
+    )
     assert main(["model-info", "--config", "lite_pose"]) == 0
     assert "pose only (no semantic stream)" in capsys.readouterr().out
 
@@ -122,7 +143,9 @@ def test_localizer_on_a_pose_only_checkpoint(checkpoint, tmp_path, monkeypatch):
     assert not loc.has_segmentation
     results = [loc.step(f, "rgb8", 0.05 * k) for k, f in enumerate(_frames(3))]
     assert all(r.mask is None for r in results)
-    assert all(np.isfinite(r.t).all() and np.isfinite(r.odom_t).all() for r in results) and results[-1].dt == pytest.approx(0.05)
+    assert all(np.isfinite(r.t).all() and np.isfinite(r.odom_t).all() for r in results) and results[
+        -1
+    ].dt == pytest.approx(0.05)
     # the ONNX backend: a graph without a seg_logits output (nor depth inputs), the same poses
     monkeypatch.setenv("VLOCNETPP_CACHE", str(tmp_path))
     onnx = Localizer.from_checkpoint(checkpoint, backend="onnx", num_threads=1)
@@ -142,7 +165,20 @@ def replayed(checkpoint, tmp_path_factory) -> Path:
     t, q = trajectory(len(ids))
     write_deeploc_split(root / "ds", "test", ids, t, q, depth=None, labels=False)
     assert main(["convert", str(root / "ds"), str(root / "in.mcap"), "--no-progress"]) == 0
-    assert main(["replay", str(root / "in.mcap"), "--checkpoint", str(checkpoint), "--out", str(root / "out.mcap"), "--no-progress"]) == 0
+    assert (
+        main(
+            [
+                "replay",
+                str(root / "in.mcap"),
+                "--checkpoint",
+                str(checkpoint),
+                "--out",
+                str(root / "out.mcap"),
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     return root
 
 
@@ -177,9 +213,28 @@ def test_replay_through_the_node_expects_no_segmentation(replayed, checkpoint, t
     """The node of a pose-only model advertises no segmentation: the bridge must not wait for it (it would time out)."""
     out = tmp_path / "node.mcap"
     env = dict(os.environ, ROS_DOMAIN_ID=str(100 + (os.getpid() + 50) % 100), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
-    proc = subprocess.run([sys.executable, "-m", "vlocnetpp_core.cli", "replay", str(replayed / "in.mcap"), "--checkpoint", str(checkpoint),
-                           "--out", str(out), "--through-node", "--rate", "max", "--no-progress"],
-                          cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "vlocnetpp_core.cli",
+            "replay",
+            str(replayed / "in.mcap"),
+            "--checkpoint",
+            str(checkpoint),
+            "--out",
+            str(out),
+            "--through-node",
+            "--rate",
+            "max",
+            "--no-progress",
+        ],
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert "6 frames localized" in proc.stdout and "skipped" not in proc.stdout
     ref, got = _poses(replayed / "out.mcap"), _poses(out)

@@ -33,18 +33,36 @@ def _recipe(tmp_path, **changes) -> dict:
     (tmp_path / "tiny_direct.yaml").write_text(yaml.safe_dump(cfg | {"global_pose_anchors": 0}))
     recipe = {
         "config": str(tmp_path / "tiny.yaml"),
-        "datasets": {"campus": {"synth": {"seed": 0, "loops": 3, "test_loops": 1, "frames_per_loop": 8, "size": [64, 48]}},
-                     "wander": WANDER},
+        "datasets": {
+            "campus": {"synth": {"seed": 0, "loops": 3, "test_loops": 1, "frames_per_loop": 8, "size": [64, 48]}},
+            "wander": WANDER,
+        },
         "defaults": {"data": "campus", "batch_size": 2, "clip_len": 2, "workers": 0, "val_every": 2},
         "stages": [
-            {"name": "vo", "stage": "stl-vo", "schedule": [{"steps": 2, "lr": 1e-3}], "threads": 1,
-             "config": "tiny_direct.yaml"},  # another model config (its global head without anchors), next to the recipe
+            {
+                "name": "vo",
+                "stage": "stl-vo",
+                "schedule": [{"steps": 2, "lr": 1e-3}],
+                "threads": 1,
+                "config": "tiny_direct.yaml",
+            },  # another model config (its global head without anchors), next to the recipe
             {"name": "seg", "stage": "stl-seg", "schedule": [{"steps": 2, "lr": 1e-3}], "threads": 1},
-            {"name": "loc", "stage": "stl-loc", "init": ["vo"], "s_q_init": 0, "data": "wander",
-             "schedule": [{"steps": 2, "lr": 1e-3}, {"steps": 4, "lr": 1e-4, "lr_end": 1e-6}]},
+            {
+                "name": "loc",
+                "stage": "stl-loc",
+                "init": ["vo"],
+                "s_q_init": 0,
+                "data": "wander",
+                "schedule": [{"steps": 2, "lr": 1e-3}, {"steps": 4, "lr": 1e-4, "lr_end": 1e-6}],
+            },
             {"name": "seg-more", "stage": "stl-seg", "continue": "seg", "schedule": [{"steps": 3, "lr": 1e-3}]},
         ],
-        "export": {"stage": "loc", "to": str(tmp_path / "models" / "tiny"), "dtype": "float16", "reference": ["campus", "wander"]},
+        "export": {
+            "stage": "loc",
+            "to": str(tmp_path / "models" / "tiny"),
+            "dtype": "float16",
+            "reference": ["campus", "wander"],
+        },
     }
     recipe.update(changes)
     path = tmp_path / "recipe.yaml"
@@ -67,28 +85,41 @@ def test_recipe_runs_every_stage_exports_and_resumes(tmp_path, capsys):
 
     # both datasets render side by side on the two cores, campus (vo's and seg's data) first; vo and seg start once it
     # is rendered, loc once vo (its init) and wander (its data) are done, seg-more once seg is
-    assert line("start dataset campus:") < line("start dataset wander:") < min(line("] dataset campus: "), line("] dataset wander: "))
+    assert (
+        line("start dataset campus:")
+        < line("start dataset wander:")
+        < min(line("] dataset campus: "), line("] dataset wander: "))
+    )
     assert line("] dataset campus: ") < min(line("start vo:"), line("start seg:"))
     assert line("start loc:") > max(line("] vo: "), line("] dataset wander: "))
     assert line("start seg-more:") > line("] seg: ") and line("export:") > line("] loc: ")
     timings = json.loads((out / "timings.json").read_text())
     assert set(timings) == {"dataset campus", "dataset wander", "vo", "seg", "loc", "seg-more", "recipe (end to end)"}
     assert all(v > 0 for v in timings.values())
-    more = [json.loads(line) for line in (out / "seg-more" / "log.jsonl").read_text().splitlines() if "validation" not in line]
+    more = [
+        json.loads(line)
+        for line in (out / "seg-more" / "log.jsonl").read_text().splitlines()
+        if "validation" not in line
+    ]
     assert [r["step"] for r in more] == [1, 2, 3]  # seg's two steps (its copied run), then one more, resumed
-    log = [json.loads(line) for line in (out / "loc" / "log.jsonl").read_text().splitlines() if "validation" not in line]
+    log = [
+        json.loads(line) for line in (out / "loc" / "log.jsonl").read_text().splitlines() if "validation" not in line
+    ]
     # the schedule, resumed at the step-down; the second entry a cosine from 1e-4 at step 2 to 1e-6 at step 4
     assert [r["step"] for r in log] == [1, 2, 3, 4]
     assert [r["lr"] for r in log] == pytest.approx([1e-3, 1e-3, 1e-4, (1e-4 + 1e-6) / 2], rel=1e-9)
     assert read_checkpoint_meta(out / "vo" / "last")["model_config"]["global_pose_anchors"] == 0  # the stage's config
     meta = read_checkpoint_meta(tmp_path / "models" / "tiny")
     assert meta["model_config"]["global_pose_anchors"] == 256  # the recipe's, on the trunk of a stage of another config
-    assert meta["training"]["stage"] == "stl-loc" and meta["training"]["init"][0]["path"].endswith("vo/best.safetensors")
+    assert meta["training"]["stage"] == "stl-loc" and meta["training"]["init"][0]["path"].endswith(
+        "vo/best.safetensors"
+    )
     reference = ReferenceSet.load(tmp_path / "models" / "tiny.reference.npz")
     # the training images of both datasets, 3 loops of 8 frames each
     assert len(reference) == 48 and "dataset 'campus'" in reference.source and "dataset 'wander'" in reference.source
     assert {tuple(t) for t in reference.t} == {
-        tuple(t) for name in ("campus", "wander") for t in _train_positions(out / "data" / name)}
+        tuple(t) for name in ("campus", "wander") for t in _train_positions(out / "data" / name)
+    }
     visits = json.loads((out / "data" / "wander" / "scene.json").read_text())["visits"]
     assert [v["pattern"]["lane_wander"] for v in visits] == [1.0] * 3  # the recipe's synth keys reach the renderer
     assert meta["training"]["data"].endswith("wander")  # the stage's own data
@@ -98,7 +129,9 @@ def test_recipe_runs_every_stage_exports_and_resumes(tmp_path, capsys):
     assert cli(["train", "--recipe", str(path), "--out", str(out)]) == 0
     assert "start " not in capsys.readouterr().out  # no dataset rendered again, no stage ran again
     again = json.loads((out / "timings.json").read_text())
-    assert again.pop("recipe (end to end)") >= timings.pop("recipe (end to end)") and again == timings  # only the export again
+    assert (
+        again.pop("recipe (end to end)") >= timings.pop("recipe (end to end)") and again == timings
+    )  # only the export again
 
 
 def test_recipe_resumes_an_unfinished_schedule(tmp_path):
@@ -112,7 +145,9 @@ def test_recipe_resumes_an_unfinished_schedule(tmp_path):
     assert config.init == (str(out / "vo" / "best.safetensors"),) and config.data == str(out / "data" / "wander")
     assert (config.s_q_init, config.batch_size, config.val_every) == (0.0, 2, 2)  # the stage's keys and the defaults'
     (command,) = stage_commands(loc, recipe, out, sys.executable)  # the stage process gets its config as a file
-    assert command[-2:] == ["--train-config", str(out / "loc.2.json")] and TrainConfig.read(out / "loc.2.json") == config
+    assert (
+        command[-2:] == ["--train-config", str(out / "loc.2.json")] and TrainConfig.read(out / "loc.2.json") == config
+    )
 
 
 def test_a_restart_entry_restarts_once_then_resumes(tmp_path):
@@ -142,42 +177,97 @@ def test_a_stage_whose_weights_are_last_gives_its_last_checkpoint(tmp_path):
     recipe.stages[0].weights = "last"  # vo: as `weights: last` in the file
     (config, _) = stage_configs(recipe.stages[2], recipe, tmp_path / "run")
     assert config.init == (str(tmp_path / "run" / "vo" / "last.safetensors"),)
-    stages = [{**s, "weights": "last"} if s["name"] == "vo" else s for s in yaml.safe_load(_recipe(tmp_path).read_text())["stages"]]
+    stages = [
+        {**s, "weights": "last"} if s["name"] == "vo" else s
+        for s in yaml.safe_load(_recipe(tmp_path).read_text())["stages"]
+    ]
     assert load_recipe(_recipe(tmp_path, stages=stages)).stages[0].weights == "last"
 
 
-@pytest.mark.parametrize("change, message", [
-    ({"stages": [{"name": "loc", "stage": "stl-loc", "init": ["vo"], "schedule": [{"steps": 2, "lr": 1e-3}]}]}, "'vo' (init or continue) is not an earlier stage"),
-    ({"stages": [{"name": "vo", "stage": "stl-vo", "schedule": [{"steps": 2}]}]}, "'schedule' must be a list"),
-    ({"stages": [{"name": "vo", "stage": "stl-vo", "data": "nope", "schedule": [{"steps": 2, "lr": 1e-3}]}]}, "data 'nope' is not one of"),
-    ({"stages": [{"name": "vo", "stage": "stl-vo", "config": "nope.yaml", "schedule": [{"steps": 2, "lr": 1e-3}]}]},
-     "config 'nope.yaml' is neither a built-in model config"),
-    ({"stages": [{"name": "vo", "stage": "stl-vo", "weights": "final", "schedule": [{"steps": 2, "lr": 1e-3}]}]},
-     "weights must be one of best, last"),
-    ({"stages": [{"name": "vo", "stage": "stl-vo", "parallel": "a", "schedule": [{"steps": 2, "lr": 1e-3}]}]}, "'parallel' is gone"),
-    ({"datasets": {"campus": {"synth": {"loops": 2, "lane_wonder": 1.0}}, "wander": WANDER}}, "unknown synth key 'lane_wonder'"),
-    ({"datasets": {"campus": {"synth": {"loops": "many"}}, "wander": WANDER}}, "dataset 'campus': bad synth value"),
-    ({"datasets": {"campus": {"render": {"loops": 2}}, "wander": WANDER}}, "a dataset is {synth: {...}} (rendered) or {path: DIR}"),
-    ({"export": {"stage": "mtl"}}, "export stage 'mtl'"),
-    ({"export": {"stage": "loc", "reference": ["campus", "nope"]}}, "export reference 'nope' is not one of the recipe's datasets"),
-    # every key of every stage, of the defaults and of the export is known, and every value a train flag takes
-    ({"stages": [{**VO, "bach_size": 2}]}, "stage 0 (vo): unknown key 'bach_size'"),
-    ({"defaults": {"data": "campus", "workerz": 0}}, "defaults: unknown key 'workerz'"),
-    ({"stages": [{**VO, "batch_size": "eight"}]}, "stage 0 (vo): 'batch_size': --batch-size must be an integer, got 'eight'"),
-    ({"stages": [{**VO, "frame_strides": [0, 1]}]}, "stage 0 (vo): 'frame_strides': --frame-strides must be strides >= 1"),
-    ({"stages": [{**VO, "freeze": ["trunk", "odometri"]}]}, "stage 0 (vo): 'freeze': --freeze: odometri is not a part"),
-    ({"stages": [{**VO, "lr": 1e-3}]}, "stage 0 (vo): 'lr' is set by the recipe"),
-    ({"stages": [{**VO, "stage": "stl-seg", "config": "lite_pose"}]}, "stage 0 (vo): 'config': --config lite_pose: stage stl-seg"),
-    ({"stages": [{**VO}, {**VO}]}, "stage 1 (vo): the name 'vo' is also stage 0's"),
-    # an init cycle: a stage can only take weights from an earlier one
-    ({"stages": [{**VO, "init": ["loc"]}, {**VO, "name": "loc", "stage": "stl-loc", "init": ["vo"]}]},
-     "stage 0 (vo): 'loc' (init or continue) is not an earlier stage (a later stage or itself"),
-    ({"stages": [{**VO, "continue": "vo"}]}, "'vo' (init or continue) is not an earlier stage (a later stage or itself"),
-    ({"export": {"stage": "loc", "to": "m", "dtype": "bfloat16"}}, "export: 'dtype' must be one of float16, float32, got 'bfloat16'"),
-    ({"export": {"stage": "loc", "to": "m", "wieghts": "last"}}, "export: unknown key 'wieghts'"),
-    ({"export": {"stage": "loc", "to": "m", "weights": "final"}}, "export: 'weights' must be one of best, last"),
-    ({"export": {"stage": "loc", "to": "m", "calibration": {"pose": "loc", "odometry": "vo-x"}}}, "calibration stage 'vo-x'"),
-])
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (
+            {"stages": [{"name": "loc", "stage": "stl-loc", "init": ["vo"], "schedule": [{"steps": 2, "lr": 1e-3}]}]},
+            "'vo' (init or continue) is not an earlier stage",
+        ),
+        ({"stages": [{"name": "vo", "stage": "stl-vo", "schedule": [{"steps": 2}]}]}, "'schedule' must be a list"),
+        (
+            {"stages": [{"name": "vo", "stage": "stl-vo", "data": "nope", "schedule": [{"steps": 2, "lr": 1e-3}]}]},
+            "data 'nope' is not one of",
+        ),
+        (
+            {
+                "stages": [
+                    {"name": "vo", "stage": "stl-vo", "config": "nope.yaml", "schedule": [{"steps": 2, "lr": 1e-3}]}
+                ]
+            },
+            "config 'nope.yaml' is neither a built-in model config",
+        ),
+        (
+            {"stages": [{"name": "vo", "stage": "stl-vo", "weights": "final", "schedule": [{"steps": 2, "lr": 1e-3}]}]},
+            "weights must be one of best, last",
+        ),
+        (
+            {"stages": [{"name": "vo", "stage": "stl-vo", "parallel": "a", "schedule": [{"steps": 2, "lr": 1e-3}]}]},
+            "'parallel' is gone",
+        ),
+        (
+            {"datasets": {"campus": {"synth": {"loops": 2, "lane_wonder": 1.0}}, "wander": WANDER}},
+            "unknown synth key 'lane_wonder'",
+        ),
+        ({"datasets": {"campus": {"synth": {"loops": "many"}}, "wander": WANDER}}, "dataset 'campus': bad synth value"),
+        (
+            {"datasets": {"campus": {"render": {"loops": 2}}, "wander": WANDER}},
+            "a dataset is {synth: {...}} (rendered) or {path: DIR}",
+        ),
+        ({"export": {"stage": "mtl"}}, "export stage 'mtl'"),
+        (
+            {"export": {"stage": "loc", "reference": ["campus", "nope"]}},
+            "export reference 'nope' is not one of the recipe's datasets",
+        ),
+        # every key of every stage, of the defaults and of the export is known, and every value a train flag takes
+        ({"stages": [{**VO, "bach_size": 2}]}, "stage 0 (vo): unknown key 'bach_size'"),
+        ({"defaults": {"data": "campus", "workerz": 0}}, "defaults: unknown key 'workerz'"),
+        (
+            {"stages": [{**VO, "batch_size": "eight"}]},
+            "stage 0 (vo): 'batch_size': --batch-size must be an integer, got 'eight'",
+        ),
+        (
+            {"stages": [{**VO, "frame_strides": [0, 1]}]},
+            "stage 0 (vo): 'frame_strides': --frame-strides must be strides >= 1",
+        ),
+        (
+            {"stages": [{**VO, "freeze": ["trunk", "odometri"]}]},
+            "stage 0 (vo): 'freeze': --freeze: odometri is not a part",
+        ),
+        ({"stages": [{**VO, "lr": 1e-3}]}, "stage 0 (vo): 'lr' is set by the recipe"),
+        (
+            {"stages": [{**VO, "stage": "stl-seg", "config": "lite_pose"}]},
+            "stage 0 (vo): 'config': --config lite_pose: stage stl-seg",
+        ),
+        ({"stages": [{**VO}, {**VO}]}, "stage 1 (vo): the name 'vo' is also stage 0's"),
+        # an init cycle: a stage can only take weights from an earlier one
+        (
+            {"stages": [{**VO, "init": ["loc"]}, {**VO, "name": "loc", "stage": "stl-loc", "init": ["vo"]}]},
+            "stage 0 (vo): 'loc' (init or continue) is not an earlier stage (a later stage or itself",
+        ),
+        (
+            {"stages": [{**VO, "continue": "vo"}]},
+            "'vo' (init or continue) is not an earlier stage (a later stage or itself",
+        ),
+        (
+            {"export": {"stage": "loc", "to": "m", "dtype": "bfloat16"}},
+            "export: 'dtype' must be one of float16, float32, got 'bfloat16'",
+        ),
+        ({"export": {"stage": "loc", "to": "m", "wieghts": "last"}}, "export: unknown key 'wieghts'"),
+        ({"export": {"stage": "loc", "to": "m", "weights": "final"}}, "export: 'weights' must be one of best, last"),
+        (
+            {"export": {"stage": "loc", "to": "m", "calibration": {"pose": "loc", "odometry": "vo-x"}}},
+            "calibration stage 'vo-x'",
+        ),
+    ],
+)
 def test_recipe_mistakes_are_one_line_naming_the_file(tmp_path, capsys, change, message):
     path = _recipe(tmp_path, **change)
     assert cli(["train", "--recipe", str(path), "--out", str(tmp_path / "run")]) == 2
@@ -193,9 +283,11 @@ def test_a_recipe_mistake_fails_in_under_a_second_before_torch_loads(tmp_path):
     stages = yaml.safe_load(_recipe(tmp_path).read_text())["stages"]
     stages[-1]["clip_len"] = 0  # the last stage's: every stage before it is checked too
     path = _recipe(tmp_path, stages=stages)
-    code = ("import sys, time; from vlocnetpp_core.cli import main; t = time.monotonic(); "
-            f"rc = main(['train', '--recipe', {str(path)!r}, '--out', {str(tmp_path / 'run')!r}]); "
-            "print(rc, time.monotonic() - t, 'torch' in sys.modules)")
+    code = (
+        "import sys, time; from vlocnetpp_core.cli import main; t = time.monotonic(); "
+        f"rc = main(['train', '--recipe', {str(path)!r}, '--out', {str(tmp_path / 'run')!r}]); "
+        "print(rc, time.monotonic() - t, 'torch' in sys.modules)"
+    )
     done = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=60)
     rc, seconds, torch_loaded = done.stdout.split()
     assert rc == "2" and "stage 3 (seg-more): 'clip_len': --clip-len must be >= 1, got 0" in done.stderr
@@ -217,7 +309,9 @@ def test_a_failing_stage_names_its_log(tmp_path, capsys):
     path = _recipe(tmp_path, stages=[{**VO, "freeze": ["trunk", "odometry"]}], export=None)  # nothing left to train
     assert cli(["train", "--recipe", str(path), "--out", str(tmp_path / "run")]) == 2
     err = capsys.readouterr().err
-    assert "vo failed: " in err and str(tmp_path / "run" / "vo.log") in err and "is left to train" in err  # the log's last line
+    assert (
+        "vo failed: " in err and str(tmp_path / "run" / "vo.log") in err and "is left to train" in err
+    )  # the log's last line
 
 
 def test_train_without_recipe_needs_config_data_and_stage(tmp_path, capsys):
@@ -238,10 +332,12 @@ def test_the_shipped_recipes_give_valid_train_commands(name, tmp_path):
         commands = stage_commands(stage, recipe, tmp_path, sys.executable)
         assert len(commands) == len(stage.schedule)
         for command in commands:
-            config = TrainConfig.read(parser.parse_args(command[command.index("train"):]).train_config)
+            config = TrainConfig.read(parser.parse_args(command[command.index("train") :]).train_config)
             assert config.stage == stage.stage and config.config == (stage.config or recipe.config)
             load_model_config(config.config)
-            assert [str(stage_weights(recipe, ref, tmp_path)) + ".safetensors" for ref in stage.init] == list(config.init)
+            assert [str(stage_weights(recipe, ref, tmp_path)) + ".safetensors" for ref in stage.init] == list(
+                config.init
+            )
     assert recipe.export["stage"] == recipe.stages[-1].name
 
 
@@ -265,9 +361,14 @@ def test_sigterm_stops_every_job_and_keeps_their_steps_and_time(tmp_path):
 
     stages = [{"name": "vo", "stage": "stl-vo", "schedule": [{"steps": 100000, "lr": 1e-3}], "threads": 1}]
     path, out = _recipe(tmp_path, stages=stages, export=None), tmp_path / "run"
-    proc = subprocess.Popen([sys.executable, "-m", "vlocnetpp_core.cli", "train", "--recipe", str(path), "--out", str(out)],
-                            cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))  # what a shell's & does
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "vlocnetpp_core.cli", "train", "--recipe", str(path), "--out", str(out)],
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN),
+    )  # what a shell's & does
     steps_log = out / "vo" / "log.jsonl"
     try:
         while not (steps_log.is_file() and steps_log.read_text().count("clips_per_s") >= 3):
@@ -284,7 +385,10 @@ def test_sigterm_stops_every_job_and_keeps_their_steps_and_time(tmp_path):
     saved = read_checkpoint_meta(out / "vo" / "last.safetensors")["training"]["step"]
     assert f"interrupted at step {saved}: saved" in (out / "vo.log").read_text()  # SIGTERMed, not SIGKILLed
     logged = sum("clips_per_s" in line for line in steps_log.read_text().splitlines())
-    assert logged >= 3 and saved in (logged, logged + 1)  # every logged step kept (+1: stopped between a step and its record)
+    assert logged >= 3 and saved in (
+        logged,
+        logged + 1,
+    )  # every logged step kept (+1: stopped between a step and its record)
     timings = json.loads((out / "timings.json").read_text())
     assert timings["vo"] > 0 and timings["recipe (end to end)"] >= timings["vo"]
 

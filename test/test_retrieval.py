@@ -18,8 +18,12 @@ def campus(tmp_path_factory):
     from vlocnetpp_core.synth import render_dataset
 
     tmp = tmp_path_factory.mktemp("retrieval")
-    render_dataset(tmp / "train", seed=0, train_loops=8, test_loops=0, frames_per_loop=120, size=(160, 90), progress=False)
-    render_dataset(tmp / "fresh", seed=5, train_loops=0, test_loops=1, frames_per_loop=120, size=(160, 90), progress=False)
+    render_dataset(
+        tmp / "train", seed=0, train_loops=8, test_loops=0, frames_per_loop=120, size=(160, 90), progress=False
+    )
+    render_dataset(
+        tmp / "fresh", seed=5, train_loops=0, test_loops=1, frames_per_loop=120, size=(160, 90), progress=False
+    )
     return tmp
 
 
@@ -80,7 +84,9 @@ def test_report_shows_the_baseline_row_and_verdict():
     for k, t in enumerate(true_t):
         rec.add(float(k), t, q, t + [2.0, 0, 0], q)  # the network: 2 m off, rotation exact
     results = [rec.result()]
-    reference = ReferenceSet(rng.normal(size=(30, 8)), true_t + [0.5, 0, 0], np.tile([np.cos(0.05), 0, 0, np.sin(0.05)], (30, 1)), "ref")
+    reference = ReferenceSet(
+        rng.normal(size=(30, 8)), true_t + [0.5, 0, 0], np.tile([np.cos(0.05), 0, 0, np.sin(0.05)], (30, 1)), "ref"
+    )
     report = add_baseline(evaluate_sequences(results), results, [reference.descriptors.copy()], reference)
     base = report["baseline"]
     assert base["overall"]["pose"]["median_translation_m"] == pytest.approx(0.5)

@@ -55,8 +55,12 @@ def score(checkpoint: Path, frames) -> dict:
             vo_err.append(np.linalg.norm(res.rel_t - true_rel_t))
         conf += confusion_matrix(f.labels, res.mask, 10)
         prev = f
-    return {"t": float(np.median(t_err)), "r": float(np.median(r_err)), "vo": float(np.median(vo_err)),
-            "miou": segmentation_metrics(conf)["miou"]}
+    return {
+        "t": float(np.median(t_err)),
+        "r": float(np.median(r_err)),
+        "vo": float(np.median(vo_err)),
+        "miou": segmentation_metrics(conf)["miou"],
+    }
 
 
 def test_shipped_model_beats_an_untrained_one(fresh_loop, tmp_path):
@@ -99,8 +103,25 @@ def test_odometry_gaps_prints_the_predicted_step_per_frame_gap(fresh_loop_dir):
     with itself), and the shipped odometry's mean step grows with the gap (docs/results.md, 2026-12-14: it tells
     the gaps apart on average, not pair by pair)."""
     script = Path(__file__).resolve().parents[1] / "scripts" / "odometry_gaps.py"
-    out = subprocess.run([sys.executable, str(script), "--checkpoint", str(shipped_checkpoint()), "--data", str(fresh_loop_dir),
-                          "--split", "test", "--frames", "40", "--max-gap", "2"], capture_output=True, text=True, check=True).stdout
+    out = subprocess.run(
+        [
+            sys.executable,
+            str(script),
+            "--checkpoint",
+            str(shipped_checkpoint()),
+            "--data",
+            str(fresh_loop_dir),
+            "--split",
+            "test",
+            "--frames",
+            "40",
+            "--max-gap",
+            "2",
+        ],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout
     rows = [line.strip("|").split("|") for line in out.splitlines() if line.startswith("| ") and line[2].isdigit()]
     gaps = [int(r[0]) for r in rows]
     true = [float(r[1]) for r in rows]

@@ -120,11 +120,18 @@ def test_test_lane_offset_moves_the_test_visits_only():
     plain, moved = plan_visit(campus, 4, "test", 1, 60), plan_visit(campus, 4, "test", 1, 60, lane_offset=3.0)
     assert moved.pattern.lane == "offset +3.00 m" and moved.lighting == plain.lighting
     assert (moved.pattern.circuit, moved.pattern.clockwise, moved.pattern.cruise_speed) == (
-        plain.pattern.circuit, plain.pattern.clockwise, plain.pattern.cruise_speed)
+        plain.pattern.circuit,
+        plain.pattern.clockwise,
+        plain.pattern.cruise_speed,
+    )
     centreline = campus.circuits[moved.pattern.circuit].points
     distance = np.linalg.norm(moved.t[:, None, :2] - centreline[None], axis=2).min(axis=1)
     weave = moved.pattern.weave_amplitude
-    assert np.all(np.abs(distance - 3.0) <= weave + 0.1), (distance.min(), distance.max(), weave)  # + the 0.1 m vertex spacing
+    assert np.all(np.abs(distance - 3.0) <= weave + 0.1), (
+        distance.min(),
+        distance.max(),
+        weave,
+    )  # + the 0.1 m vertex spacing
 
 
 def test_lane_wander_drifts_across_the_road_and_changes_nothing_else():
@@ -137,17 +144,32 @@ def test_lane_wander_drifts_across_the_road_and_changes_nothing_else():
     assert dataclasses.replace(wander.pattern, lane_wander=0.0) == plain.pattern
     np.testing.assert_array_equal(wander.times, plain.times)
     centreline = campus.circuits[plain.pattern.circuit].points
-    plain_d, wander_d = (np.linalg.norm(v.t[:, None, :2] - centreline[None], axis=2).min(axis=1) for v in (plain, wander))
+    plain_d, wander_d = (
+        np.linalg.norm(v.t[:, None, :2] - centreline[None], axis=2).min(axis=1) for v in (plain, wander)
+    )
     lane = abs(LANES[plain.pattern.lane])
     assert np.all(np.abs(plain_d - lane) <= plain.pattern.weave_amplitude + 0.1)
     drift = wander_d - lane
     assert drift.max() - drift.min() > 1.0, (drift.min(), drift.max())  # it really crosses the road, not just weaves
-    assert np.all(wander_d <= MAX_LANE_OFFSET_M + 0.1) and np.all(np.abs(drift) <= 2.0 + plain.pattern.weave_amplitude + 0.1)
+    assert np.all(wander_d <= MAX_LANE_OFFSET_M + 0.1) and np.all(
+        np.abs(drift) <= 2.0 + plain.pattern.weave_amplitude + 0.1
+    )
 
 
-@pytest.mark.parametrize("bad", [dict(size=(8, 8)), dict(frames_per_loop=0), dict(train_loops=0, test_loops=0), dict(seed=-1), dict(scene="two\nlines"),
-                                 dict(test_lane_offset=9.0), dict(test_lane_offset=float("nan")), dict(lane_wander=-1.0),
-                                 dict(lane_wander=float("inf"))])
+@pytest.mark.parametrize(
+    "bad",
+    [
+        dict(size=(8, 8)),
+        dict(frames_per_loop=0),
+        dict(train_loops=0, test_loops=0),
+        dict(seed=-1),
+        dict(scene="two\nlines"),
+        dict(test_lane_offset=9.0),
+        dict(test_lane_offset=float("nan")),
+        dict(lane_wander=-1.0),
+        dict(lane_wander=float("inf")),
+    ],
+)
 def test_bad_arguments_are_user_errors(tmp_path, bad):
     args = dict(SMALL, **bad)
     with pytest.raises(UserError):
@@ -193,13 +215,17 @@ def test_depth_puts_points_on_the_surfaces_they_are_labelled(frames):
 def _warp_errors(K, prev, cur, t0, q0, t1, q1):
     tr, qr = geometry.relative_pose(t0, q0, t1, q1)
     T = torch.from_numpy(geometry.pose_to_matrix(tr, qr)).float()[None]
-    grid, valid = geometry.warp_grid(torch.from_numpy(cur[2])[None, None], T, torch.from_numpy(K.matrix()).float()[None])
+    grid, valid = geometry.warp_grid(
+        torch.from_numpy(cur[2])[None, None], T, torch.from_numpy(K.matrix()).float()[None]
+    )
     gray = lambda img: torch.from_numpy(img.astype(np.float32).mean(-1) / 255.0)[None, None]  # noqa: E731
     warped = F.grid_sample(gray(prev[0]), grid, align_corners=False)
     m = valid[0, 0] > 0
     err = (warped - gray(cur[0])).abs()[0, 0][m].median().item()
     still = (gray(prev[0]) - gray(cur[0])).abs()[0, 0][m].median().item()
-    lab = F.grid_sample(torch.from_numpy(prev[1].astype(np.float32))[None, None], grid, mode="nearest", align_corners=False)[0, 0]
+    lab = F.grid_sample(
+        torch.from_numpy(prev[1].astype(np.float32))[None, None], grid, mode="nearest", align_corners=False
+    )[0, 0]
     agree = float((lab[m].numpy() == cur[1][m.numpy()]).mean())
     return err, still, agree, float(m.float().mean())
 
@@ -212,8 +238,15 @@ def test_warping_with_depth_and_pose_reproduces_the_next_frame(frames):
     for i in range(1, len(out)):
         t0, q0, t1, q1 = visit.t[i - 1], visit.q[i - 1], visit.t[i], visit.q[i]
         err, still, agree, cover = _warp_errors(K, out[i - 1], out[i], t0, q0, t1, q1)
-        assert cover > 0.5 and err < 0.01 and err < 0.5 * still and agree > 0.9, (i, err, still, agree)  # measured <= 0.006, >= 0.92
-        bad, _, bad_agree, _ = _warp_errors(K, out[i - 1], out[i], t0, q0[xyzw], t1, q1[xyzw])  # quaternion read in the wrong order
+        assert cover > 0.5 and err < 0.01 and err < 0.5 * still and agree > 0.9, (
+            i,
+            err,
+            still,
+            agree,
+        )  # measured <= 0.006, >= 0.92
+        bad, _, bad_agree, _ = _warp_errors(
+            K, out[i - 1], out[i], t0, q0[xyzw], t1, q1[xyzw]
+        )  # quaternion read in the wrong order
         assert bad > 5 * err and bad_agree < agree - 0.2, (i, err, bad, agree, bad_agree)
         ratios.append(err / still)
     assert np.median(ratios) < 0.2, ratios  # measured 0.11
@@ -223,7 +256,9 @@ def test_pitch_and_roll_are_rendered_as_pure_rotations(frames):
     """A tilted camera sees what the level camera sees, moved by the homography K R K^-1."""
     campus, K, visit, _ = frames
     yaw = math.atan2(*geometry.quat_to_matrix(visit.q[2])[[1, 0], 2])
-    q_level = geometry.matrix_to_quat(np.array([[math.sin(yaw), 0, math.cos(yaw)], [-math.cos(yaw), 0, math.sin(yaw)], [0, -1, 0]]))
+    q_level = geometry.matrix_to_quat(
+        np.array([[math.sin(yaw), 0, math.cos(yaw)], [-math.cos(yaw), 0, math.sin(yaw)], [0, -1, 0]])
+    )
     tilt = geometry.quat_normalize(np.array([math.cos(0.03), math.sin(0.03), 0.0, 0.0]))  # 3.4 deg pitch
     q_tilted = geometry.quat_normalize(geometry.quat_mul(q_level, tilt))
     a = render_frame(campus, visit.t[2], q_level, K, visit.lighting)
@@ -234,9 +269,14 @@ def test_pitch_and_roll_are_rendered_as_pure_rotations(frames):
 
 def test_render_frame_refuses_poses_it_cannot_render(frames):
     campus, K, visit, _ = frames
-    steep = geometry.quat_normalize(geometry.quat_mul(visit.q[0], np.array([math.cos(0.35), math.sin(0.35), 0.0, 0.0])))  # 40 deg pitch
-    for t, q, words in ((visit.t[0], steep, "pitch/roll"), ([50.0, 60.0, -0.5], visit.q[0], "above the ground"),
-                        ([900.0, 60.0, 1.2], visit.q[0], "outside the rendered world")):
+    steep = geometry.quat_normalize(
+        geometry.quat_mul(visit.q[0], np.array([math.cos(0.35), math.sin(0.35), 0.0, 0.0]))
+    )  # 40 deg pitch
+    for t, q, words in (
+        (visit.t[0], steep, "pitch/roll"),
+        ([50.0, 60.0, -0.5], visit.q[0], "above the ground"),
+        ([900.0, 60.0, 1.2], visit.q[0], "outside the rendered world"),
+    ):
         with pytest.raises(ValueError, match=words):
             render_frame(campus, t, q, K)
 

@@ -22,22 +22,54 @@ def test_help_lists_the_options(capsys):
         cli.main(["synth", "--help"])
     assert done.value.code == 0
     text = capsys.readouterr().out
-    for flag in ("--scene", "--seed", "--loops", "--test-loops", "--frames-per-loop", "--size", "--force", "--frame-interval"):
+    for flag in (
+        "--scene",
+        "--seed",
+        "--loops",
+        "--test-loops",
+        "--frames-per-loop",
+        "--size",
+        "--force",
+        "--frame-interval",
+    ):
         assert flag in text
 
 
 def test_renders_and_prints_one_summary_line(tmp_path, capsys):
     out = tmp_path / "ds"
-    rc = cli.main(["synth", str(out), "--loops", "1", "--test-loops", "1", "--frames-per-loop", "3", "--size", "64x36", "--no-progress"])
+    rc = cli.main(
+        [
+            "synth",
+            str(out),
+            "--loops",
+            "1",
+            "--test-loops",
+            "1",
+            "--frames-per-loop",
+            "3",
+            "--size",
+            "64x36",
+            "--no-progress",
+        ]
+    )
     assert rc == 0
     lines = capsys.readouterr().out.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith(f"wrote {out}: 1 train + 1 test loops, 6 frames at 64x36")
     assert len(list(out.glob("DeepLoc/*/LeftImages/*.png"))) == 6
-    assert cli.main(["synth", str(out), "--loops", "1", "--frames-per-loop", "3", "--size", "64x36", "--no-progress"]) == 2
+    assert (
+        cli.main(["synth", str(out), "--loops", "1", "--frames-per-loop", "3", "--size", "64x36", "--no-progress"]) == 2
+    )
     assert "exists already (use --force" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("args, words", [(["--size", "64by36"], "WIDTHxHEIGHT"), (["--size", "4x4"], "--size"), (["--frames-per-loop", "0"], "--frames-per-loop")])
+@pytest.mark.parametrize(
+    "args, words",
+    [
+        (["--size", "64by36"], "WIDTHxHEIGHT"),
+        (["--size", "4x4"], "--size"),
+        (["--frames-per-loop", "0"], "--frames-per-loop"),
+    ],
+)
 def test_bad_flags_give_one_line(tmp_path, capsys, args, words):
     try:
         rc = cli.main(["synth", str(tmp_path / "ds"), "--no-progress", *args])
@@ -54,9 +86,26 @@ def test_interrupted_render_leaves_nothing_behind(tmp_path):
     out = tmp_path / "ds"
     out.mkdir()
     (out / "old.txt").write_text("previous dataset")
-    cmd = [sys.executable, "-m", "vlocnetpp_core.cli", "synth", str(out), "--force", "--loops", "1", "--test-loops", "0",
-           "--frames-per-loop", "2000", "--size", "48x32", "--no-progress"]
-    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=ctrl_c_interrupts)
+    cmd = [
+        sys.executable,
+        "-m",
+        "vlocnetpp_core.cli",
+        "synth",
+        str(out),
+        "--force",
+        "--loops",
+        "1",
+        "--test-loops",
+        "0",
+        "--frames-per-loop",
+        "2000",
+        "--size",
+        "48x32",
+        "--no-progress",
+    ]
+    proc = subprocess.Popen(
+        cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=ctrl_c_interrupts
+    )
     try:
         deadline = time.monotonic() + 120
         while not list(tmp_path.glob(".ds.partial-*/DeepLoc/train/LeftImages/Image_5.png")):

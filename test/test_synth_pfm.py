@@ -27,7 +27,7 @@ def test_layout_follows_the_spec(tmp_path):
     write_pfm(p, a)
     data = p.read_bytes()
     assert data.startswith(b"Pf\n3 2\n-1.0\n")
-    assert np.array_equal(np.frombuffer(data[len(b"Pf\n3 2\n-1.0\n"):], "<f4"), [3, 4, 5, 0, 1, 2])
+    assert np.array_equal(np.frombuffer(data[len(b"Pf\n3 2\n-1.0\n") :], "<f4"), [3, 4, 5, 0, 1, 2])
 
 
 def test_reads_big_endian(tmp_path):

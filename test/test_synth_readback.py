@@ -20,7 +20,9 @@ def campus(tmp_path_factory):
     from vlocnetpp_core.synth import render_dataset
 
     out = tmp_path_factory.mktemp("synth") / "campus"
-    render_dataset(out, scene="campus", seed=0, train_loops=1, test_loops=1, frames_per_loop=FRAMES, size=SIZE, progress=False)
+    render_dataset(
+        out, scene="campus", seed=0, train_loops=1, test_loops=1, frames_per_loop=FRAMES, size=SIZE, progress=False
+    )
     return out
 
 

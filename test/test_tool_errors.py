@@ -34,8 +34,29 @@ def tiny(tmp_path_factory) -> tuple[Path, Path]:
 
 def train_argv(tiny, out: Path | str, *extra: str) -> list[str]:
     data, config = tiny
-    return ["train", "--config", str(config), "--data", str(data), "--stage", "stl-loc", "--out", str(out), "--steps", "1",
-            "--batch-size", "2", "--clip-len", "2", "--workers", "0", "--threads", "1", "--no-progress", *extra]
+    return [
+        "train",
+        "--config",
+        str(config),
+        "--data",
+        str(data),
+        "--stage",
+        "stl-loc",
+        "--out",
+        str(out),
+        "--steps",
+        "1",
+        "--batch-size",
+        "2",
+        "--clip-len",
+        "2",
+        "--workers",
+        "0",
+        "--threads",
+        "1",
+        "--no-progress",
+        *extra,
+    ]
 
 
 def one_line_error(capsys) -> str:
@@ -71,8 +92,14 @@ def run_without_root_powers(argv: list[str]) -> subprocess.CompletedProcess:
     it (root writes in a 0o555 folder)."""
     drop = {"preexec_fn": _without_dac_override} if os.geteuid() == 0 else {}
     try:
-        return subprocess.run([sys.executable, "-m", "vlocnetpp_core.cli", *argv], cwd=REPO, capture_output=True, text=True,
-                              timeout=300, **drop)
+        return subprocess.run(
+            [sys.executable, "-m", "vlocnetpp_core.cli", *argv],
+            cwd=REPO,
+            capture_output=True,
+            text=True,
+            timeout=300,
+            **drop,
+        )
     except subprocess.SubprocessError as err:  # no CAP_SETPCAP in this container
         pytest.skip(f"cannot start a child without CAP_DAC_OVERRIDE: {err}")
 
@@ -132,7 +159,10 @@ def test_synth_force_from_inside_the_target_is_refused_up_front(tmp_path, monkey
     line = one_line_error(capsys)
     assert line.startswith(f"vlocnetpp synth: error: {target}: is the current folder or one above it ("), line
     assert sorted(p.name for p in tmp_path.iterdir()) == ["ds"]  # no ..old-* or .partial-* folder
-    assert sorted(p.name for p in ds.iterdir()) == ["keep.txt", "sub"] and (ds / "keep.txt").read_text() == "previous dataset"
+    assert (
+        sorted(p.name for p in ds.iterdir()) == ["keep.txt", "sub"]
+        and (ds / "keep.txt").read_text() == "previous dataset"
+    )
 
 
 def test_synth_force_from_beside_the_target_still_replaces_it(tmp_path, monkeypatch, capsys):
@@ -153,8 +183,9 @@ def test_synth_leaves_no_parent_folders_it_made_when_it_fails(tmp_path, monkeypa
 
     monkeypatch.setattr(writer, "_render_into", fail)
     with pytest.raises(OSError, match="No space"):
-        writer.render_dataset(tmp_path / "a" / "b" / "ds", train_loops=1, test_loops=0, frames_per_loop=2, size=(32, 24),
-                              progress=False)
+        writer.render_dataset(
+            tmp_path / "a" / "b" / "ds", train_loops=1, test_loops=0, frames_per_loop=2, size=(32, 24), progress=False
+        )
     assert list(tmp_path.iterdir()) == []
 
 
@@ -173,5 +204,8 @@ def test_init_from_a_checkpoint_sharing_no_tensor_is_refused(tiny, tmp_path, cap
     out = tmp_path / "run"
     assert cli(train_argv(tiny, out, "--init", str(other))) == 2
     line = one_line_error(capsys)
-    assert line.startswith(f"vlocnetpp train: error: --init {other}: none of its ") and "matches a tensor of this stl-loc network" in line
+    assert (
+        line.startswith(f"vlocnetpp train: error: --init {other}: none of its ")
+        and "matches a tensor of this stl-loc network" in line
+    )
     assert not out.exists()

@@ -38,8 +38,29 @@ def tiny(tmp_path_factory) -> tuple[Path, Path]:
 
 
 def train_args(data: Path, config: Path, out: Path, stage: str, steps: int, *extra: str) -> list[str]:
-    return ["train", "--config", str(config), "--data", str(data), "--stage", stage, "--out", str(out), "--steps", str(steps),
-            "--batch-size", "2", "--clip-len", "2", "--workers", "0", "--no-progress", "--val-every", str(steps), *extra]
+    return [
+        "train",
+        "--config",
+        str(config),
+        "--data",
+        str(data),
+        "--stage",
+        stage,
+        "--out",
+        str(out),
+        "--steps",
+        str(steps),
+        "--batch-size",
+        "2",
+        "--clip-len",
+        "2",
+        "--workers",
+        "0",
+        "--no-progress",
+        "--val-every",
+        str(steps),
+        *extra,
+    ]
 
 
 def train(data: Path, config: Path, out: Path, stage: str, steps: int, *extra: str) -> list[dict]:
@@ -66,18 +87,52 @@ def test_training_clips_pool_frame_strides(tiny):
     double = np.median([np.linalg.norm(pooled[i]["rel_t"][1].numpy()) for i in range(len(single), len(pooled))])
     assert double == pytest.approx(2 * step, rel=0.15)  # the clips of stride 2 span two frames' motion
     with pytest.raises(SystemExit):
-        cli(["train", "--config", "lite", "--data", str(tiny[0]), "--stage", "stl-vo", "--out", "x", "--frame-strides", "0,1"])
+        cli(
+            [
+                "train",
+                "--config",
+                "lite",
+                "--data",
+                str(tiny[0]),
+                "--stage",
+                "stl-vo",
+                "--out",
+                "x",
+                "--frame-strides",
+                "0,1",
+            ]
+        )
 
 
 def test_crop_scale_below_one_is_refused(tiny, tmp_path, capsys):
     out = tmp_path / "run"
-    assert cli(["train", "--config", "lite", "--data", str(tiny[0]), "--stage", "stl-loc", "--out", str(out), "--crop-scale", "0.5"]) == 2
+    assert (
+        cli(
+            [
+                "train",
+                "--config",
+                "lite",
+                "--data",
+                str(tiny[0]),
+                "--stage",
+                "stl-loc",
+                "--out",
+                str(out),
+                "--crop-scale",
+                "0.5",
+            ]
+        )
+        == 2
+    )
     assert "--crop-scale must be >= 1, got 0.5" in capsys.readouterr().err
 
 
 def test_zero_epochs_is_refused_not_thirty(tiny, tmp_path, capsys):
     out = tmp_path / "run"
-    assert cli(["train", "--config", "lite", "--data", str(tiny[0]), "--stage", "mtl", "--out", str(out), "--epochs", "0"]) != 0
+    assert (
+        cli(["train", "--config", "lite", "--data", str(tiny[0]), "--stage", "mtl", "--out", str(out), "--epochs", "0"])
+        != 0
+    )
     assert "--epochs must be > 0" in capsys.readouterr().err and not out.exists()
 
 
@@ -86,7 +141,11 @@ def test_zero_epochs_is_refused_not_thirty(tiny, tmp_path, capsys):
 # AVX2, torch 2.13): stl-loc x 0.12-0.26, q 0.15-0.37; stl-seg seg 0.041-0.057, depth 0.24-0.38; stl-vo (bfloat16) q_vo
 # 0.032-0.075, while its x_vo went to 0.12-0.69 (not reliably down in 150 tiny steps: not checked). With --lr 0 every
 # ratio is 1.0. The seeds change the initial weights and the data order, a wider spread than rounding alone makes.
-STAGE_CHECKS = {"stl-loc": (("x", 0.5), ("q", 0.7)), "stl-seg": (("seg", 0.2), ("depth", 0.7)), "stl-vo": (("q_vo", 0.25),)}
+STAGE_CHECKS = {
+    "stl-loc": (("x", 0.5), ("q", 0.7)),
+    "stl-seg": (("seg", 0.2), ("depth", 0.7)),
+    "stl-vo": (("q_vo", 0.25),),
+}
 
 
 @pytest.fixture(scope="module")
@@ -115,7 +174,9 @@ def test_each_stage_lowers_its_loss(stage_training, stage):
     before, after = stage_training[1][stage]
     got = ratios(before, after, [key for key, _ in STAGE_CHECKS[stage]])
     for key, factor in STAGE_CHECKS[stage]:
-        assert got[key] < factor, f"{stage}: {key} on the probe batch went {before[key]:.4g} -> {after[key]:.4g} ({got[key]:.3f}x)"
+        assert got[key] < factor, (
+            f"{stage}: {key} on the probe batch went {before[key]:.4g} -> {after[key]:.4g} ({got[key]:.3f}x)"
+        )
 
 
 def test_stage_checkpoints_have_sidecar_and_calibration(stage_runs):
@@ -139,8 +200,12 @@ def test_validation_counts_every_training_stride_and_calibrates_at_the_first(tin
     from vlocnetpp_core.training.losses import VLocNetLoss
     from vlocnetpp_core.training.trainer import validate
 
-    index = open_dataset(tiny[0], None, "test")  # 1 loop of 10 frames: 9 clips at stride 1 (2 batches), 8 at stride 2 (1)
-    clips = [ClipDataset(index, 2, make_transform(False, (64, 48)), stride=s, depth=False, labels=False) for s in (1, 2)]
+    index = open_dataset(
+        tiny[0], None, "test"
+    )  # 1 loop of 10 frames: 9 clips at stride 1 (2 batches), 8 at stride 2 (1)
+    clips = [
+        ClipDataset(index, 2, make_transform(False, (64, 48)), stride=s, depth=False, labels=False) for s in (1, 2)
+    ]
     model = load_checkpoint(stage_runs["stl-vo"] / "last")[0]
     criterion = VLocNetLoss(("vo",), depth=False)
     one, calib_one = validate(model, criterion, clips[:1], "stl-vo", "cpu")
@@ -205,10 +270,18 @@ def test_mtl_from_stage_checkpoints_starts_at_their_losses(tiny, stage_training,
 
     with deterministic():
         assembled, fresh = start("mtl", *inits), start("fresh")
-    for stage, key, rel, factor in (("stl-loc", "x", 1e-4, 0.5), ("stl-vo", "q_vo", 1e-4, 0.2), ("stl-seg", "seg", 0.25, 0.2)):
+    for stage, key, rel, factor in (
+        ("stl-loc", "x", 1e-4, 0.5),
+        ("stl-vo", "q_vo", 1e-4, 0.2),
+        ("stl-seg", "seg", 0.25, 0.2),
+    ):
         stage_end = probes[stage][1][key]
-        assert abs(assembled[key] / stage_end - 1) < rel, f"{key}: mtl starts at {assembled[key]:.4g}, {stage} ended at {stage_end:.4g}"
-        assert assembled[key] < factor * fresh[key], f"{key}: mtl starts at {assembled[key]:.4g}, untrained {fresh[key]:.4g}"
+        assert abs(assembled[key] / stage_end - 1) < rel, (
+            f"{key}: mtl starts at {assembled[key]:.4g}, {stage} ended at {stage_end:.4g}"
+        )
+        assert assembled[key] < factor * fresh[key], (
+            f"{key}: mtl starts at {assembled[key]:.4g}, untrained {fresh[key]:.4g}"
+        )
 
 
 def test_mtl_semantic_fusion_starts_as_an_identity(tiny, stage_runs):
@@ -247,11 +320,15 @@ def test_mtl_with_frozen_parts_trains_only_the_rest(tiny, stage_runs, tmp_path):
     from vlocnetpp_core.inference.checkpoint import read_checkpoint_tensors
 
     data, config = tiny
-    inits = [a for stage in ("stl-loc", "stl-vo", "stl-seg") for a in ("--init", str(stage_runs[stage] / "last.safetensors"))]
+    inits = [
+        a for stage in ("stl-loc", "stl-vo", "stl-seg") for a in ("--init", str(stage_runs[stage] / "last.safetensors"))
+    ]
     train(data, config, tmp_path / "mtl", "mtl", 6, *inits, "--freeze", "trunk,odometry,semantic,depth_head")
     after, meta = read_checkpoint_tensors(tmp_path / "mtl" / "last")
     assert meta["training"]["frozen"] == ["depth_head", "odometry", "semantic", "trunk"]
-    sources = {stage: read_checkpoint_tensors(stage_runs[stage] / "last")[0] for stage in ("stl-loc", "stl-vo", "stl-seg")}
+    sources = {
+        stage: read_checkpoint_tensors(stage_runs[stage] / "last")[0] for stage in ("stl-loc", "stl-vo", "stl-seg")
+    }
     kept = {"trunk.": "stl-loc", "odometry.": "stl-vo", "semantic.": "stl-seg", "depth_head.": "stl-seg"}
     for prefix, stage in kept.items():
         names = [k for k in after if k.startswith(prefix)]
@@ -264,8 +341,24 @@ def test_mtl_with_frozen_parts_trains_only_the_rest(tiny, stage_runs, tmp_path):
 
 def test_freeze_refuses_unknown_parts_and_freezing_everything(tiny, tmp_path, capsys):
     data, config = tiny
-    base = ["train", "--config", str(config), "--data", str(data), "--out", str(tmp_path / "run"), "--steps", "2", "--workers", "0",
-            "--batch-size", "2", "--clip-len", "2", "--no-progress"]
+    base = [
+        "train",
+        "--config",
+        str(config),
+        "--data",
+        str(data),
+        "--out",
+        str(tmp_path / "run"),
+        "--steps",
+        "2",
+        "--workers",
+        "0",
+        "--batch-size",
+        "2",
+        "--clip-len",
+        "2",
+        "--no-progress",
+    ]
     with pytest.raises(SystemExit):
         cli([*base, "--stage", "stl-loc", "--freeze", "trunk,backbone"])
     assert "backbone" in capsys.readouterr().err
@@ -280,7 +373,9 @@ def test_mtl_assembled_without_steps_is_exactly_its_stages(tiny, stage_runs, tmp
     from vlocnetpp_core.data import ClipDataset, make_transform, open_dataset
 
     data, config = tiny
-    inits = [a for stage in ("stl-loc", "stl-vo", "stl-seg") for a in ("--init", str(stage_runs[stage] / "last.safetensors"))]
+    inits = [
+        a for stage in ("stl-loc", "stl-vo", "stl-seg") for a in ("--init", str(stage_runs[stage] / "last.safetensors"))
+    ]
     train(data, config, tmp_path / "mtl", "mtl", 0, *inits)
     mtl, meta = load_checkpoint(tmp_path / "mtl" / "last")
     assert meta["model_config"]["semantic_fusion"] is False and mtl.semantic_fusion is None
@@ -308,11 +403,32 @@ def test_an_assembled_network_takes_a_retrained_stream_from_a_later_init(tiny, s
     from vlocnetpp_core.model.stages import stream_of
 
     data, config = tiny
-    inits = [a for stage in ("stl-loc", "stl-vo", "stl-seg") for a in ("--init", str(stage_runs[stage] / "last.safetensors"))]
+    inits = [
+        a for stage in ("stl-loc", "stl-vo", "stl-seg") for a in ("--init", str(stage_runs[stage] / "last.safetensors"))
+    ]
     train(data, config, tmp_path / "first", "mtl", 0, *inits)
-    train(data, config, tmp_path / "vo", "stl-vo", 2, "--init", str(stage_runs["stl-loc"] / "last.safetensors"), "--seed", "3")
-    train(data, config, tmp_path / "second", "mtl", 0, "--init", str(tmp_path / "first" / "last.safetensors"),
-          "--init", str(tmp_path / "vo" / "last.safetensors"))
+    train(
+        data,
+        config,
+        tmp_path / "vo",
+        "stl-vo",
+        2,
+        "--init",
+        str(stage_runs["stl-loc"] / "last.safetensors"),
+        "--seed",
+        "3",
+    )
+    train(
+        data,
+        config,
+        tmp_path / "second",
+        "mtl",
+        0,
+        "--init",
+        str(tmp_path / "first" / "last.safetensors"),
+        "--init",
+        str(tmp_path / "vo" / "last.safetensors"),
+    )
     first, vo, second = (read_checkpoint_tensors(tmp_path / name / "last")[0] for name in ("first", "vo", "second"))
     odometry = [k for k in second if stream_of(k) == "odometry"]
     assert odometry and all(torch.equal(second[k], vo[k]) for k in odometry)
@@ -331,17 +447,43 @@ def test_a_retrained_stream_of_another_head_shape_replaces_the_assembled_one(tin
     cfg["odometry_pose_pooling"] = {"flatten": "average"}.get(cfg.get("odometry_pose_pooling"), "flatten")
     other = tmp_path / "other.yaml"
     other.write_text(yaml.safe_dump(cfg))
-    inits = [a for stage in ("stl-loc", "stl-vo", "stl-seg") for a in ("--init", str(stage_runs[stage] / "last.safetensors"))]
+    inits = [
+        a for stage in ("stl-loc", "stl-vo", "stl-seg") for a in ("--init", str(stage_runs[stage] / "last.safetensors"))
+    ]
     train(data, config, tmp_path / "first", "mtl", 0, *inits)
     train(data, other, tmp_path / "vo", "stl-vo", 2, "--init", str(stage_runs["stl-loc"] / "last.safetensors"))
     first_ckpt = str(tmp_path / "first" / "last.safetensors")
-    train(data, other, tmp_path / "second", "mtl", 0, "--init", first_ckpt, "--init", str(tmp_path / "vo" / "last.safetensors"))
+    train(
+        data,
+        other,
+        tmp_path / "second",
+        "mtl",
+        0,
+        "--init",
+        first_ckpt,
+        "--init",
+        str(tmp_path / "vo" / "last.safetensors"),
+    )
     first, vo, second = (read_checkpoint_tensors(tmp_path / name / "last")[0] for name in ("first", "vo", "second"))
     assert first["odometry.head.fc1.weight"].shape != second["odometry.head.fc1.weight"].shape
     assert all(torch.equal(second[k], vo[k]) for k in second if stream_of(k) == "odometry")
     assert all(torch.equal(second[k], first[k]) for k in second if stream_of(k) != "odometry")
-    third = ["train", "--config", str(other), "--data", str(data), "--stage", "mtl", "--out", str(tmp_path / "third"), "--steps", "0",
-             "--init", first_ckpt, "--no-progress"]
+    third = [
+        "train",
+        "--config",
+        str(other),
+        "--data",
+        str(data),
+        "--stage",
+        "mtl",
+        "--out",
+        str(tmp_path / "third"),
+        "--steps",
+        "0",
+        "--init",
+        first_ckpt,
+        "--no-progress",
+    ]
     assert cli(third) == 2  # without the retrained stream the assembled one cannot fit the other head
     assert "do not match this model config" in capsys.readouterr().err
 
@@ -357,8 +499,31 @@ def test_a_cosine_run_anneals_each_step_and_a_resume_continues_its_curve(tiny, t
     log = train(data, config, out, "stl-loc", 6, "--lr", "1e-3", "--lr-end", "1e-5", "--threads", "1")
     curve = LearningRatePhase(0, 1e-3, 1e-5, 6)
     assert [r["lr"] for r in steps_of(log)] == pytest.approx([curve.at(s) for s in range(6)], rel=1e-9)
-    base = ["train", "--config", str(config), "--data", str(data), "--stage", "stl-loc", "--out", str(out), "--batch-size", "2",
-            "--clip-len", "2", "--workers", "0", "--no-progress", "--threads", "1", "--resume", "--lr", "1e-3", "--lr-end", "1e-5"]
+    base = [
+        "train",
+        "--config",
+        str(config),
+        "--data",
+        str(data),
+        "--stage",
+        "stl-loc",
+        "--out",
+        str(out),
+        "--batch-size",
+        "2",
+        "--clip-len",
+        "2",
+        "--workers",
+        "0",
+        "--no-progress",
+        "--threads",
+        "1",
+        "--resume",
+        "--lr",
+        "1e-3",
+        "--lr-end",
+        "1e-5",
+    ]
     assert Trainer(train_config([*base, "--steps", "6"])).phase == curve
     assert Trainer(train_config([*base, "--steps", "10"])).phase == LearningRatePhase(6, 1e-3, 1e-5, 10)
 
@@ -378,8 +543,30 @@ def test_restart_keeps_weights_and_step_with_a_fresh_optimiser_and_loss_weights(
     train(data, config, out, "stl-loc", 3, "--lr", "1e-3", "--threads", "1")
     saved = load_file(str(out / "train_state.safetensors"))
     assert float(saved["criterion.s_x"]) != 0.0 and float(saved["criterion.s_q"]) != -3.0  # learned over 3 steps
-    base = ["train", "--config", str(config), "--data", str(data), "--stage", "stl-loc", "--out", str(out), "--batch-size", "2",
-            "--clip-len", "2", "--workers", "0", "--no-progress", "--threads", "1", "--val-every", "4", "--steps", "4"]
+    base = [
+        "train",
+        "--config",
+        str(config),
+        "--data",
+        str(data),
+        "--stage",
+        "stl-loc",
+        "--out",
+        str(out),
+        "--batch-size",
+        "2",
+        "--clip-len",
+        "2",
+        "--workers",
+        "0",
+        "--no-progress",
+        "--threads",
+        "1",
+        "--val-every",
+        "4",
+        "--steps",
+        "4",
+    ]
     parse = build_parser("train").parse_args
     resumed = Trainer(train_config([*base, "--resume"]))
     assert resumed.optimizer.state and float(resumed.criterion.s_x.detach()) == float(saved["criterion.s_x"])
@@ -393,15 +580,42 @@ def test_restart_keeps_weights_and_step_with_a_fresh_optimiser_and_loss_weights(
     assert steps_of(read_log(out))[-1]["lr"] == pytest.approx(3e-4)
     after = load_file(str(out / "train_state.safetensors"))
     assert abs(float(after["criterion.s_x"])) == pytest.approx(3e-4, rel=1e-4)
-    assert abs(float(after["criterion.s_q"]) + 3.0) == pytest.approx(3e-4, abs=5e-7)  # a float32 step near -3 (ulp 2.4e-7)
+    assert abs(float(after["criterion.s_q"]) + 3.0) == pytest.approx(
+        3e-4, abs=5e-7
+    )  # a float32 step near -3 (ulp 2.4e-7)
     with pytest.raises(SystemExit):  # one or the other
         parse([*base, "--resume", "--restart"])
 
 
 def _train_cmd(data: Path, config: Path, out: Path, steps: int) -> list[str]:
-    return [sys.executable, "-m", "vlocnetpp_core.training.train", "--config", str(config), "--data", str(data), "--stage", "mtl",
-            "--out", str(out), "--steps", str(steps), "--batch-size", "2", "--clip-len", "2", "--workers", "0",
-            "--no-progress", "--val-every", "3", "--seed", "3", "--threads", "1"]
+    return [
+        sys.executable,
+        "-m",
+        "vlocnetpp_core.training.train",
+        "--config",
+        str(config),
+        "--data",
+        str(data),
+        "--stage",
+        "mtl",
+        "--out",
+        str(out),
+        "--steps",
+        str(steps),
+        "--batch-size",
+        "2",
+        "--clip-len",
+        "2",
+        "--workers",
+        "0",
+        "--no-progress",
+        "--val-every",
+        "3",
+        "--seed",
+        "3",
+        "--threads",
+        "1",
+    ]
 
 
 def test_killed_run_resumes_exactly(tiny, tmp_path):
@@ -412,7 +626,9 @@ def test_killed_run_resumes_exactly(tiny, tmp_path):
     reference = {r["step"]: r for r in steps_of(read_log(straight))}
 
     killed = tmp_path / "killed"
-    proc = subprocess.Popen(_train_cmd(data, config, killed, 40), cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc = subprocess.Popen(
+        _train_cmd(data, config, killed, 40), cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+    )
     deadline = time.monotonic() + 300
     while time.monotonic() < deadline:
         log = killed / "log.jsonl"
@@ -423,21 +639,33 @@ def test_killed_run_resumes_exactly(tiny, tmp_path):
     proc.wait()
     saved = json.loads((killed / "train_state.json").read_text())["step"]
     assert saved in (3, 6)
-    subprocess.run([*_train_cmd(data, config, killed, steps), "--resume"], check=True, capture_output=True, cwd=REPO, timeout=600)
+    subprocess.run(
+        [*_train_cmd(data, config, killed, steps), "--resume"], check=True, capture_output=True, cwd=REPO, timeout=600
+    )
     resumed = [r for r in steps_of(read_log(killed))]
-    after = {r["step"]: r for r in resumed[len(resumed) - (steps - saved):]}
+    after = {r["step"]: r for r in resumed[len(resumed) - (steps - saved) :]}
     assert sorted(after) == list(range(saved + 1, steps + 1))
     for step, rec in after.items():
         for key in ("loss", "x", "x_vo", "seg"):
             assert rec[key] == pytest.approx(reference[step][key], rel=1e-6, abs=1e-7), (step, key)
 
     # Other frame strides would index another clip list from the saved position: refused.
-    other = subprocess.run([*_train_cmd(data, config, killed, steps + 2), "--resume", "--frame-strides", "1,2"], capture_output=True,
-                           text=True, cwd=REPO, timeout=600)
+    other = subprocess.run(
+        [*_train_cmd(data, config, killed, steps + 2), "--resume", "--frame-strides", "1,2"],
+        capture_output=True,
+        text=True,
+        cwd=REPO,
+        timeout=600,
+    )
     assert other.returncode != 0 and "resume it with the same" in other.stderr
     # A step-down for the last part of the run: --resume --lr applies from the resumed step on.
-    subprocess.run([*_train_cmd(data, config, killed, steps + 2), "--resume", "--lr", "3e-5"], check=True, capture_output=True,
-                   cwd=REPO, timeout=600)
+    subprocess.run(
+        [*_train_cmd(data, config, killed, steps + 2), "--resume", "--lr", "3e-5"],
+        check=True,
+        capture_output=True,
+        cwd=REPO,
+        timeout=600,
+    )
     lrs = {r["step"]: r["lr"] for r in steps_of(read_log(killed))}
     assert lrs[steps] == pytest.approx(1e-4)  # the mtl default the run started with
     assert lrs[steps + 1] == lrs[steps + 2] == pytest.approx(3e-5)
@@ -447,9 +675,35 @@ def test_torchrun_two_processes_gloo(tiny, tmp_path):
     data, config = tiny
     out = tmp_path / "ddp"
     env = dict(os.environ, OMP_NUM_THREADS="1")
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2", "-m", "vlocnetpp_core.training.train",
-           "--config", str(config), "--data", str(data), "--stage", "stl-seg", "--out", str(out), "--steps", "3",
-           "--batch-size", "2", "--clip-len", "2", "--workers", "0", "--no-progress", "--device", "cpu"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "torch.distributed.run",
+        "--standalone",
+        "--nproc-per-node",
+        "2",
+        "-m",
+        "vlocnetpp_core.training.train",
+        "--config",
+        str(config),
+        "--data",
+        str(data),
+        "--stage",
+        "stl-seg",
+        "--out",
+        str(out),
+        "--steps",
+        "3",
+        "--batch-size",
+        "2",
+        "--clip-len",
+        "2",
+        "--workers",
+        "0",
+        "--no-progress",
+        "--device",
+        "cpu",
+    ]
     proc = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
     model, meta = load_checkpoint(out / "last.safetensors")
@@ -478,7 +732,11 @@ def test_pose_only_refuses_stl_seg(unlabelled, tmp_path, capsys):
     out = tmp_path / "seg"
     assert cli(["train", "--config", str(config), "--data", str(data), "--stage", "stl-seg", "--out", str(out)]) == 2
     err = capsys.readouterr().err
-    assert "stage stl-seg trains the segmentation stream" in err and "semantic_stream: false" in err and "stl-loc, stl-vo, mtl" in err
+    assert (
+        "stage stl-seg trains the segmentation stream" in err
+        and "semantic_stream: false" in err
+        and "stl-loc, stl-vo, mtl" in err
+    )
     assert not out.exists()
 
 
@@ -495,13 +753,32 @@ def test_pose_only_trains_without_labels_or_depth(unlabelled, tmp_path, capsys):
     # 0.050-0.135, q 0.66-0.72 (the position terms barely move: x 0.90-0.94, x_vo 0.45-0.82, not checked). --lr 0: 1.0.
     with deterministic():
         loc = train_probed(train_args(data, config, tmp_path / "stl-loc", "stl-loc", 60, *one))
-        train(data, config, tmp_path / "stl-vo", "stl-vo", 6, *one, "--init", str(tmp_path / "stl-loc" / "last.safetensors"))
-        mtl = train_probed(train_args(data, config, tmp_path / "mtl", "mtl", 60, *one))  # loc + vo, Eq. 6 weighting of the pose tasks
-    for name, (before, after), checks in (("stl-loc", loc, (("x", 0.6), ("q", 0.8))), ("mtl", mtl, (("q_vo", 0.35), ("q", 0.9)))):
+        train(
+            data,
+            config,
+            tmp_path / "stl-vo",
+            "stl-vo",
+            6,
+            *one,
+            "--init",
+            str(tmp_path / "stl-loc" / "last.safetensors"),
+        )
+        mtl = train_probed(
+            train_args(data, config, tmp_path / "mtl", "mtl", 60, *one)
+        )  # loc + vo, Eq. 6 weighting of the pose tasks
+    for name, (before, after), checks in (
+        ("stl-loc", loc, (("x", 0.6), ("q", 0.8))),
+        ("mtl", mtl, (("q_vo", 0.35), ("q", 0.9))),
+    ):
         got = ratios(before, after, [key for key, _ in checks])
         for key, factor in checks:
-            assert got[key] < factor, f"{name}: {key} on the probe batch went {before[key]:.4g} -> {after[key]:.4g} ({got[key]:.3f}x)"
-    assert all({"x", "q", "x_vo", "q_vo"} <= set(r) and not {"seg", "depth"} & set(r) for r in steps_of(read_log(tmp_path / "mtl")))
+            assert got[key] < factor, (
+                f"{name}: {key} on the probe batch went {before[key]:.4g} -> {after[key]:.4g} ({got[key]:.3f}x)"
+            )
+    assert all(
+        {"x", "q", "x_vo", "q_vo"} <= set(r) and not {"seg", "depth"} & set(r)
+        for r in steps_of(read_log(tmp_path / "mtl"))
+    )
     model, meta = load_checkpoint(tmp_path / "mtl" / "best")
     assert model.semantic is None and meta["model_config"]["semantic_stream"] is False
     # mtl assembled from the two pose stages (the "streams" rule): each stream is exactly its stage's
@@ -513,8 +790,21 @@ def test_pose_only_trains_without_labels_or_depth(unlabelled, tmp_path, capsys):
         assert all(torch.equal(got[k], want[k]) for k in want if k.startswith(prefix))
     # evaluate: pose, odometry and the retrieval baseline; no segmentation, and vo/loc both trained
     capsys.readouterr()
-    assert cli(["evaluate", "--checkpoint", str(tmp_path / "assembled" / "last"), "--data", str(data), "--json", str(tmp_path / "m.json"),
-                "--no-progress"]) == 0
+    assert (
+        cli(
+            [
+                "evaluate",
+                "--checkpoint",
+                str(tmp_path / "assembled" / "last"),
+                "--data",
+                str(data),
+                "--json",
+                str(tmp_path / "m.json"),
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     printed = capsys.readouterr().out
     report = json.loads((tmp_path / "m.json").read_text())
     assert report["meta"]["tasks"] == ["loc", "vo"] and report["meta"]["untrained_tasks"] == []
@@ -533,8 +823,31 @@ def test_only_the_odometry_stage_mirrors_its_training_clips(tiny, tmp_path):
     data, config = tiny
     flips = {}
     for stage in ("stl-loc", "stl-vo", "stl-seg", "mtl"):
-        args = ["train", "--config", str(config), "--data", str(data), "--stage", stage, "--out", str(tmp_path / stage),
-                "--steps", "1", "--batch-size", "2", "--clip-len", "2", "--workers", "0", "--no-progress", "--threads", "1"]
+        args = [
+            "train",
+            "--config",
+            str(config),
+            "--data",
+            str(data),
+            "--stage",
+            stage,
+            "--out",
+            str(tmp_path / stage),
+            "--steps",
+            "1",
+            "--batch-size",
+            "2",
+            "--clip-len",
+            "2",
+            "--workers",
+            "0",
+            "--no-progress",
+            "--threads",
+            "1",
+        ]
         trainer = Trainer(train_config(args))
-        flips[stage] = [any(isinstance(t, HorizontalFlip) for t in clips.transform.transforms) for clips in trainer.train_clips.datasets]
+        flips[stage] = [
+            any(isinstance(t, HorizontalFlip) for t in clips.transform.transforms)
+            for clips in trainer.train_clips.datasets
+        ]
     assert flips == {"stl-loc": [False], "stl-vo": [True], "stl-seg": [False], "mtl": [False]}

@@ -20,11 +20,31 @@ def test_the_command_line_gives_one_field_per_flag():
     from vlocnetpp_core.cli import build_parser
     from vlocnetpp_core.training.train import train_config
 
-    args = build_parser("train").parse_args(["train", "--config", "lite", "--data", "D", "--stage", "stl-vo", "--out", "O",
-                                              "--frame-strides", "2,1,2", "--freeze", "trunk", "--init", "a", "--init", "b"])
+    args = build_parser("train").parse_args(
+        [
+            "train",
+            "--config",
+            "lite",
+            "--data",
+            "D",
+            "--stage",
+            "stl-vo",
+            "--out",
+            "O",
+            "--frame-strides",
+            "2,1,2",
+            "--freeze",
+            "trunk",
+            "--init",
+            "a",
+            "--init",
+            "b",
+        ]
+    )
     config = train_config(args)
-    assert config == TrainConfig(config="lite", data="D", stage="stl-vo", out="O", frame_strides=(1, 2), freeze=("trunk",),
-                                 init=("a", "b"))
+    assert config == TrainConfig(
+        config="lite", data="D", stage="stl-vo", out="O", frame_strides=(1, 2), freeze=("trunk",), init=("a", "b")
+    )
     flags = set(vars(args)) - {"command", "_module", "recipe", "train_config"}  # the command line's own
     assert flags == set(TrainConfig.keys())  # every train flag is a field, and no more
 
@@ -36,20 +56,27 @@ def test_a_config_written_reads_back_equal(tmp_path):
     assert TrainConfig.read(config.write(tmp_path / "c.json")) == config
 
 
-@pytest.mark.parametrize("change, key, message", [
-    ({"batch_size": "8"}, "batch_size", "--batch-size must be an integer, got '8'"),
-    ({"bf16": 1}, "bf16", "--bf16 must be true or false"),
-    ({"steps": True}, "steps", "--steps must be an integer"),
-    ({"frame_strides": 2}, "frame_strides", "--frame-strides must be a list of int values"),
-    ({"stage": "stl-depth"}, "stage", "--stage must be one of stl-loc, stl-vo, stl-seg, mtl"),
-    ({"format": "kitti"}, "format", "--format must be one of deeploc, 7scenes"),
-    ({"crop_scale": 0.5}, "crop_scale", "--crop-scale must be >= 1, got 0.5"),
-    ({"epochs": 0}, "epochs", "--epochs must be > 0, got 0 (--steps 0 assembles mtl"),
-    ({"steps": 3, "epochs": 1.0}, "epochs", "--steps and --epochs exclude each other"),
-    ({"resume": True, "restart": True}, "restart", "--resume and --restart exclude each other"),
-    ({"freeze": ["trunk", "head"]}, "freeze", "--freeze: head is not a part of the network"),
-    ({"stage": "stl-seg", "config": "lite_pose"}, "config", "--config lite_pose: stage stl-seg trains the segmentation stream"),
-])
+@pytest.mark.parametrize(
+    "change, key, message",
+    [
+        ({"batch_size": "8"}, "batch_size", "--batch-size must be an integer, got '8'"),
+        ({"bf16": 1}, "bf16", "--bf16 must be true or false"),
+        ({"steps": True}, "steps", "--steps must be an integer"),
+        ({"frame_strides": 2}, "frame_strides", "--frame-strides must be a list of int values"),
+        ({"stage": "stl-depth"}, "stage", "--stage must be one of stl-loc, stl-vo, stl-seg, mtl"),
+        ({"format": "kitti"}, "format", "--format must be one of deeploc, 7scenes"),
+        ({"crop_scale": 0.5}, "crop_scale", "--crop-scale must be >= 1, got 0.5"),
+        ({"epochs": 0}, "epochs", "--epochs must be > 0, got 0 (--steps 0 assembles mtl"),
+        ({"steps": 3, "epochs": 1.0}, "epochs", "--steps and --epochs exclude each other"),
+        ({"resume": True, "restart": True}, "restart", "--resume and --restart exclude each other"),
+        ({"freeze": ["trunk", "head"]}, "freeze", "--freeze: head is not a part of the network"),
+        (
+            {"stage": "stl-seg", "config": "lite_pose"},
+            "config",
+            "--config lite_pose: stage stl-seg trains the segmentation stream",
+        ),
+    ],
+)
 def test_a_bad_value_is_named_by_its_key(change, key, message):
     with pytest.raises(ConfigError, match=message.replace("(", r"\(")) as err:
         TrainConfig(**{**BASE, **change})
@@ -77,7 +104,10 @@ def test_the_train_config_imports_no_torch():
     import subprocess
 
     code = "import sys, vlocnetpp_core.training.config, vlocnetpp_core.training.recipe; print('torch' in sys.modules)"
-    assert subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip() == "False"
+    assert (
+        subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
+        == "False"
+    )
 
 
 def test_a_trainer_built_from_a_train_config_takes_a_step(tmp_path):
@@ -86,11 +116,23 @@ def test_a_trainer_built_from_a_train_config_takes_a_step(tmp_path):
     from vlocnetpp_core.training.train_data import SeededClips
     from vlocnetpp_core.training.trainer import Trainer
 
-    render_dataset(tmp_path / "data", seed=0, train_loops=2, test_loops=0, frames_per_loop=6, size=(64, 48), progress=False)
+    render_dataset(
+        tmp_path / "data", seed=0, train_loops=2, test_loops=0, frames_per_loop=6, size=(64, 48), progress=False
+    )
     cfg = load_model_config("lite").to_dict() | {"input_size": [64, 48]}
     (tmp_path / "tiny.yaml").write_text(yaml.safe_dump(cfg))
-    config = TrainConfig(config=str(tmp_path / "tiny.yaml"), data=str(tmp_path / "data"), stage="stl-vo", out=str(tmp_path / "run"),
-                         steps=1, batch_size=2, clip_len=2, workers=0, threads=1, no_progress=True)
+    config = TrainConfig(
+        config=str(tmp_path / "tiny.yaml"),
+        data=str(tmp_path / "data"),
+        stage="stl-vo",
+        out=str(tmp_path / "run"),
+        steps=1,
+        batch_size=2,
+        clip_len=2,
+        workers=0,
+        threads=1,
+        no_progress=True,
+    )
     trainer = Trainer(config)
     assert (trainer.lr, trainer.crop_scale, trainer.tasks, trainer.total) == (1e-3, 1.0, ("vo",), 1)
     before = {k: v.clone() for k, v in trainer.model.state_dict().items()}

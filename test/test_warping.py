@@ -29,11 +29,13 @@ def rotation(axis: tuple[float, float, float], degrees: float) -> torch.Tensor:
 
 def texture(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     """Smooth RGB texture ``(3, ...)`` on the plane's coordinates (metres)."""
-    return torch.stack((
-        0.5 + 0.25 * torch.sin(1.3 * x) + 0.2 * torch.cos(0.9 * y + 0.4 * x),
-        0.5 + 0.3 * torch.cos(0.7 * x - 1.1 * y),
-        0.5 + 0.2 * torch.sin(0.5 * x + 0.8 * y) * torch.cos(0.6 * y),
-    ))
+    return torch.stack(
+        (
+            0.5 + 0.25 * torch.sin(1.3 * x) + 0.2 * torch.cos(0.9 * y + 0.4 * x),
+            0.5 + 0.3 * torch.cos(0.7 * x - 1.1 * y),
+            0.5 + 0.2 * torch.sin(0.5 * x + 0.8 * y) * torch.cos(0.6 * y),
+        )
+    )
 
 
 def render_plane(T_wc: torch.Tensor, K: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -119,7 +121,11 @@ def test_matches_kornia_warp_frame_depth_on_random_inputs():
     image_prev = torch.rand(B, 4, H, W, generator=g, dtype=torch.float64)
     depth = torch.rand(B, 1, H, W, generator=g, dtype=torch.float64) * 9 + 1
     t = torch.randn(B, 3, generator=g, dtype=torch.float64) * 0.3
-    q = geometry.quat_normalize(torch.cat((torch.ones(B, 1, dtype=torch.float64), 0.05 * torch.randn(B, 3, generator=g, dtype=torch.float64)), 1))
+    q = geometry.quat_normalize(
+        torch.cat(
+            (torch.ones(B, 1, dtype=torch.float64), 0.05 * torch.randn(B, 3, generator=g, dtype=torch.float64)), 1
+        )
+    )
     T_rel = geometry.pose_to_matrix(t, q)  # camera t in camera t-1: maps points of frame t into frame t-1
     K = intrinsics(B, W, H).double()
     K[:, 0, 0] += torch.rand(B, generator=g, dtype=torch.float64) * 30

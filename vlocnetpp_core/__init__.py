@@ -16,4 +16,3 @@ def lazy_getattr(package: str, exports: dict[str, str], namespace: dict):
         return value
 
     return __getattr__
-

@@ -21,11 +21,27 @@ COMMANDS: dict[str, tuple[str, str, tuple[str, ...]]] = {
     "data-info": ("vlocnetpp_core.data.check", "summarise and sanity-check a dataset (run before training)", ()),
     "model-info": ("vlocnetpp_core.model.info", "parameter counts per stream of a model config", ()),
     "train": ("vlocnetpp_core.training.train", "train a stage (stl-loc, stl-vo, stl-seg, mtl)", ()),
-    "evaluate": ("vlocnetpp_core.evaluation.evaluate", "evaluate a checkpoint on a dataset with the paper's metrics", ()),
-    "convert": ("vlocnetpp_core.bag.convert", "convert a DeepLoc / 7-Scenes dataset to a ROS 2 MCAP bag", ("convert-deeploc",)),
-    "extract": ("vlocnetpp_core.bag.extract", "turn a robot's ROS 2 bag into a DeepLoc-layout dataset (images, poses, depth)", ()),
+    "evaluate": (
+        "vlocnetpp_core.evaluation.evaluate",
+        "evaluate a checkpoint on a dataset with the paper's metrics",
+        (),
+    ),
+    "convert": (
+        "vlocnetpp_core.bag.convert",
+        "convert a DeepLoc / 7-Scenes dataset to a ROS 2 MCAP bag",
+        ("convert-deeploc",),
+    ),
+    "extract": (
+        "vlocnetpp_core.bag.extract",
+        "turn a robot's ROS 2 bag into a DeepLoc-layout dataset (images, poses, depth)",
+        (),
+    ),
     "replay": ("vlocnetpp_core.bag.replay", "run the localizer over a bag and write an output bag", ()),
-    "map": ("vlocnetpp_core.mapping.cli", "build a keyframe map of training images for refinement (map build, map info)", ()),
+    "map": (
+        "vlocnetpp_core.mapping.cli",
+        "build a keyframe map of training images for refinement (map build, map info)",
+        (),
+    ),
     "evaluate-bag": ("vlocnetpp_core.bag.evaluate_bag", "score a bag holding ground truth and localizer outputs", ()),
     "bench": ("vlocnetpp_core.bench", "speed and memory benchmarks against the performance targets", ()),
     "export-onnx": ("vlocnetpp_core.inference.onnx_export", "export the streaming step to ONNX", ()),
@@ -64,7 +80,9 @@ def main(argv: list[str] | None = None) -> int:
         return 0 if args.command is None else 2
     module = importlib.import_module(args._module)
     try:
-        with sigterm_as_interrupt():  # SIGTERM stops every command as Ctrl-C does (a stopped recipe sends it to its jobs)
+        with (
+            sigterm_as_interrupt()
+        ):  # SIGTERM stops every command as Ctrl-C does (a stopped recipe sends it to its jobs)
             return int(module.run(args) or 0)
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)

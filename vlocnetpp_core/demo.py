@@ -39,12 +39,21 @@ SHIPPED_MAP = {"scene": "campus", "seed": TRAINING_SEED, "loops": 32, "frames_pe
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default="demo_output", help="output folder (default ./demo_output; replaced if it exists)")
-    p.add_argument("--seed", type=int, default=101, help="visit seed of the fresh test loops (default 101; 0 was used for training)")
+    p.add_argument(
+        "--seed",
+        type=int,
+        default=101,
+        help="visit seed of the fresh test loops (default 101; 0 was used for training)",
+    )
     p.add_argument("--loops", type=int, default=2, help="test loops to render (default 2)")
     p.add_argument("--frames-per-loop", type=int, default=175, help="frames per loop (default 175, one lap)")
     p.add_argument("--checkpoint", default=None, help="checkpoint to run (default: the shipped model)")
-    p.add_argument("--map", default="auto", metavar="MAP.npz|auto",
-                   help="keyframe map to refine against (default auto: NAME.map.npz beside the checkpoint, none when missing; '' for none)")
+    p.add_argument(
+        "--map",
+        default="auto",
+        metavar="MAP.npz|auto",
+        help="keyframe map to refine against (default auto: NAME.map.npz beside the checkpoint, none when missing; '' for none)",
+    )
 
 
 def _step(n: int, text: str) -> float:
@@ -68,7 +77,9 @@ def run(args: argparse.Namespace) -> int:
     from vlocnetpp_core.synth import render_dataset
 
     if args.seed == TRAINING_SEED:
-        raise UserError(f"--seed {TRAINING_SEED} is the seed the shipped model was trained on; pick another for a fair test")
+        raise UserError(
+            f"--seed {TRAINING_SEED} is the seed the shipped model was trained on; pick another for a fair test"
+        )
     try:
         checkpoint = Path(args.checkpoint) if args.checkpoint else shipped_checkpoint()
     except FileNotFoundError as err:
@@ -90,10 +101,19 @@ def run(args: argparse.Namespace) -> int:
     if to_build:
         _build_shipped_map(map_path)
 
-    t0 = _step(1, f"rendering {args.loops} fresh test loops of the synthetic campus (scene 'campus', visit seed {args.seed})")
+    t0 = _step(
+        1, f"rendering {args.loops} fresh test loops of the synthetic campus (scene 'campus', visit seed {args.seed})"
+    )
     data = out / "campus"
-    render_dataset(data, scene="campus", seed=args.seed, train_loops=0, test_loops=args.loops,
-                   frames_per_loop=args.frames_per_loop, progress=True)
+    render_dataset(
+        data,
+        scene="campus",
+        seed=args.seed,
+        train_loops=0,
+        test_loops=args.loops,
+        frames_per_loop=args.frames_per_loop,
+        progress=True,
+    )
     _done(t0)
 
     t0 = _step(2, "converting them to a ROS 2 MCAP bag (camera, depth, camera info, labels, ground truth)")
@@ -102,7 +122,10 @@ def run(args: argparse.Namespace) -> int:
     _done(t0)
 
     refining = ", refining against the keyframe map" if map_path else ""
-    t0 = _step(3, f"replaying the bag through the real 'localizer' node over DDS (one frame at a time, every frame processed{refining})")
+    t0 = _step(
+        3,
+        f"replaying the bag through the real 'localizer' node over DDS (one frame at a time, every frame processed{refining})",
+    )
     result_bag = out / "localized.mcap"
     summary = _replay_through_node(bag, checkpoint, map_path, result_bag)
     print("          " + summary.replace("\n", "\n          "))
@@ -113,7 +136,12 @@ def run(args: argparse.Namespace) -> int:
     reference = ReferenceSet.load(reference_file) if reference_file.is_file() else None
     refiner = Refiner.from_file(map_path) if map_path else None
     report, results = bag_report(result_bag, samples=3, reference=reference, refiner=refiner)
-    report["meta"] = {"checkpoint": str(checkpoint), "bag": str(result_bag), "seed": args.seed, "map": str(map_path) if map_path else None}
+    report["meta"] = {
+        "checkpoint": str(checkpoint),
+        "bag": str(result_bag),
+        "seed": args.seed,
+        "map": str(map_path) if map_path else None,
+    }
     frames = {r.name: len(r.stamps) for r in results}
     n = sum(frames.values())
     wall = _seconds_per_frame(summary, n)
@@ -126,11 +154,15 @@ def run(args: argparse.Namespace) -> int:
     if refined_share_line(report):
         print(refined_share_line(report))
     if reference is None:
-        print(f"note: no retrieval baseline: {reference_file} (the descriptors of the model's training images) not found")
+        print(
+            f"note: no retrieval baseline: {reference_file} (the descriptors of the model's training images) not found"
+        )
     if map_path is None:
         print("note: no refined and no structure-based rows: " + (notes[0] if notes else "no keyframe map (--map '')"))
     if wall is not None:
-        print(f"through the node: {1000 * wall:.1f} ms per frame (image published -> pose received, lockstep, including DDS)")
+        print(
+            f"through the node: {1000 * wall:.1f} ms per frame (image published -> pose received, lockstep, including DDS)"
+        )
     print()
     write_outputs(report, results, CLASS_NAMES, out / "metrics.json", None, out / "plots")
     outputs = [t for t in topics.OUTPUT_TOPICS if map_path or t != topics.NETWORK_POSE_TOPIC]
@@ -152,9 +184,14 @@ def _build_shipped_map(path: Path) -> None:
     from vlocnetpp_core.mapping.sources import scene_keyframes, scene_source
 
     spec = SHIPPED_MAP
-    t0 = _step(0, f"building the shipped model's keyframe map (first run only): the keyframes of its {spec['loops']} training "
-                  f"visits (scene '{spec['scene']}', seed {spec['seed']}), rendered, into {path}")
-    sequences = scene_keyframes(spec["scene"], spec["seed"], spec["loops"], spec["frames_per_loop"], SPACING_M, ANGLE_DEG)
+    t0 = _step(
+        0,
+        f"building the shipped model's keyframe map (first run only): the keyframes of its {spec['loops']} training "
+        f"visits (scene '{spec['scene']}', seed {spec['seed']}), rendered, into {path}",
+    )
+    sequences = scene_keyframes(
+        spec["scene"], spec["seed"], spec["loops"], spec["frames_per_loop"], SPACING_M, ANGLE_DEG
+    )
     source = scene_source(spec["scene"], spec["seed"], spec["loops"], spec["frames_per_loop"])
     build_map_of(sequences, source, workers=os.cpu_count() or 1).save(path)
     _done(t0)
@@ -163,8 +200,18 @@ def _build_shipped_map(path: Path) -> None:
 def _replay_through_node(bag: Path, checkpoint: Path, map_path: Path | None, out: Path) -> str:
     """``vlocnetpp replay --through-node --rate max`` of ``bag`` into ``out`` (with ``--map`` when there is a map);
     its summary."""
-    cmd = [*program_command("replay-node"), str(bag), "--checkpoint", str(checkpoint),
-           "--out", str(out), "--through-node", "--rate", "max", *(["--map", str(map_path)] if map_path else [])]
+    cmd = [
+        *program_command("replay-node"),
+        str(bag),
+        "--checkpoint",
+        str(checkpoint),
+        "--out",
+        str(out),
+        "--through-node",
+        "--rate",
+        "max",
+        *(["--map", str(map_path)] if map_path else []),
+    ]
     proc = subprocess.run(cmd, capture_output=True, text=True)
     if proc.returncode != 0:
         raise UserError(f"replay through the node failed:\n{proc.stderr[-3000:]}")

@@ -26,5 +26,6 @@ def require(module: str, what: str):
     try:
         return importlib.import_module(module)
     except ImportError:
-        raise UserError(f"{what} needs the Python package {module!r}, which is not installed "
-                        f"(it is in requirements.txt)") from None
+        raise UserError(
+            f"{what} needs the Python package {module!r}, which is not installed (it is in requirements.txt)"
+        ) from None

@@ -122,9 +122,15 @@ def quat_to_matrix(q: Array) -> Array:
     w, x, y, z = q.unbind(-1)
     return torch.stack(
         (
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+            1 - 2 * (y * y + z * z),
+            2 * (x * y - w * z),
+            2 * (x * z + w * y),
+            2 * (x * y + w * z),
+            1 - 2 * (x * x + z * z),
+            2 * (y * z - w * x),
+            2 * (x * z - w * y),
+            2 * (y * z + w * x),
+            1 - 2 * (x * x + y * y),
         ),
         dim=-1,
     ).reshape(q.shape[:-1] + (3, 3))
@@ -140,10 +146,36 @@ def matrix_to_quat(R: Array) -> Array:
     trace = m[..., 0, 0] + m[..., 1, 1] + m[..., 2, 2]
     cands = torch.stack(
         (
-            torch.stack((1 + trace, m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]), -1),
-            torch.stack((m[..., 2, 1] - m[..., 1, 2], 1 + m[..., 0, 0] - m[..., 1, 1] - m[..., 2, 2], m[..., 0, 1] + m[..., 1, 0], m[..., 0, 2] + m[..., 2, 0]), -1),
-            torch.stack((m[..., 0, 2] - m[..., 2, 0], m[..., 0, 1] + m[..., 1, 0], 1 - m[..., 0, 0] + m[..., 1, 1] - m[..., 2, 2], m[..., 1, 2] + m[..., 2, 1]), -1),
-            torch.stack((m[..., 1, 0] - m[..., 0, 1], m[..., 0, 2] + m[..., 2, 0], m[..., 1, 2] + m[..., 2, 1], 1 - m[..., 0, 0] - m[..., 1, 1] + m[..., 2, 2]), -1),
+            torch.stack(
+                (1 + trace, m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]), -1
+            ),
+            torch.stack(
+                (
+                    m[..., 2, 1] - m[..., 1, 2],
+                    1 + m[..., 0, 0] - m[..., 1, 1] - m[..., 2, 2],
+                    m[..., 0, 1] + m[..., 1, 0],
+                    m[..., 0, 2] + m[..., 2, 0],
+                ),
+                -1,
+            ),
+            torch.stack(
+                (
+                    m[..., 0, 2] - m[..., 2, 0],
+                    m[..., 0, 1] + m[..., 1, 0],
+                    1 - m[..., 0, 0] + m[..., 1, 1] - m[..., 2, 2],
+                    m[..., 1, 2] + m[..., 2, 1],
+                ),
+                -1,
+            ),
+            torch.stack(
+                (
+                    m[..., 1, 0] - m[..., 0, 1],
+                    m[..., 0, 2] + m[..., 2, 0],
+                    m[..., 1, 2] + m[..., 2, 1],
+                    1 - m[..., 0, 0] - m[..., 1, 1] + m[..., 2, 2],
+                ),
+                -1,
+            ),
         ),
         dim=-2,
     )  # (..., 4 candidates, 4)
@@ -257,7 +289,9 @@ def pixel_grid(height: int, width: int, dtype=torch.float32, device=None) -> tor
     return torch.stack((u.reshape(-1), v.reshape(-1)), -1)
 
 
-def warp_grid(depth: torch.Tensor, T_rel: torch.Tensor, K: torch.Tensor, min_depth: float = 1e-3) -> tuple[torch.Tensor, torch.Tensor]:
+def warp_grid(
+    depth: torch.Tensor, T_rel: torch.Tensor, K: torch.Tensor, min_depth: float = 1e-3
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Backward-warp sampling grid from frame t into frame t-1 (paper Eq. 4, docs/conventions.md, Warping).
 
     For every pixel ``u`` of frame t: back-project with ``D_t(u)``, move the point into camera
@@ -304,11 +338,15 @@ def pool_warp_grid(grid: torch.Tensor, valid: torch.Tensor, size: tuple[int, int
     return g, m
 
 
-def warp_features(features: torch.Tensor, grid: torch.Tensor, valid: torch.Tensor, threshold: float = 0.5) -> torch.Tensor:
+def warp_features(
+    features: torch.Tensor, grid: torch.Tensor, valid: torch.Tensor, threshold: float = 0.5
+) -> torch.Tensor:
     """Bilinearly sample previous-frame ``features (B, C, h, w)`` at ``grid (B, h, w, 2)``.
 
     ``valid (B, 1, h, w)`` is the pooled mask; samples where less than ``threshold`` of the
     block was valid are zero. Differentiable with respect to ``features`` and ``grid``.
     """
-    out = torch.nn.functional.grid_sample(features, grid.to(features.dtype), mode="bilinear", padding_mode="zeros", align_corners=False)
+    out = torch.nn.functional.grid_sample(
+        features, grid.to(features.dtype), mode="bilinear", padding_mode="zeros", align_corners=False
+    )
     return out * (valid >= threshold).to(out.dtype)

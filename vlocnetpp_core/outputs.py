@@ -92,7 +92,9 @@ def make_dirs(folder: str | Path, out: str | Path | None = None) -> list[Path]:
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as err:
-        raise UserError(f"{out if out is not None else folder}: cannot make the folder {folder} ({err.strerror})") from None
+        raise UserError(
+            f"{out if out is not None else folder}: cannot make the folder {folder} ({err.strerror})"
+        ) from None
     return made
 
 

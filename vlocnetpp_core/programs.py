@@ -27,6 +27,8 @@ def program_command(name: str) -> list[str]:
     """The command line prefix that runs the registered program ``name`` with this Python."""
     found = [ep for ep in entry_points(group=GROUP) if ep.name == name]
     if not found:
-        raise UserError(f"the ROS program '{name}' is not installed (entry point group {GROUP}); "
-                        "install the package with its ROS side (bash scripts/dev setup, or colcon build)")
+        raise UserError(
+            f"the ROS program '{name}' is not installed (entry point group {GROUP}); "
+            "install the package with its ROS side (bash scripts/dev setup, or colcon build)"
+        )
     return [sys.executable, "-m", found[0].module]

@@ -70,7 +70,9 @@ def image_to_array(msg: Image) -> np.ndarray:
     Raises :class:`FrameError` for an unsupported encoding, a zero size, a bad ``step`` or a
     ``data`` length that does not match ``step * height``.
     """
-    return decode_raw(msg.data, msg.width, msg.height, msg.step, msg.encoding, bool(msg.is_bigendian), allowed=IMAGE_ENCODINGS)
+    return decode_raw(
+        msg.data, msg.width, msg.height, msg.step, msg.encoding, bool(msg.is_bigendian), allowed=IMAGE_ENCODINGS
+    )
 
 
 def compressed_to_rgb(msg: CompressedImage) -> np.ndarray:
@@ -81,7 +83,9 @@ def compressed_to_rgb(msg: CompressedImage) -> np.ndarray:
 def depth_to_array(msg: Image) -> np.ndarray:
     """``(H, W) float32`` metres (0 = invalid) of a ``32FC1`` (metres) or ``16UC1`` (millimetres) image."""
     try:
-        raw = decode_raw(msg.data, msg.width, msg.height, msg.step, msg.encoding, bool(msg.is_bigendian), allowed=DEPTH_ENCODINGS)
+        raw = decode_raw(
+            msg.data, msg.width, msg.height, msg.step, msg.encoding, bool(msg.is_bigendian), allowed=DEPTH_ENCODINGS
+        )
     except FrameError as err:
         raise FrameError(f"depth_{err.reason}", f"depth: {err}") from None
     return depth_to_metres(raw, msg.encoding)
@@ -91,7 +95,10 @@ def camera_info_to_intrinsics(msg: CameraInfo) -> Intrinsics:
     """:class:`Intrinsics` from ``k`` of a ``sensor_msgs/CameraInfo`` (distortion is ignored: rectified images expected)."""
     k = np.asarray(msg.k, dtype=np.float64)
     if k.size != 9 or not np.isfinite(k).all() or k[0] <= 0 or k[4] <= 0 or msg.width <= 0 or msg.height <= 0:
-        raise FrameError("camera_info_invalid", f"CameraInfo {msg.width}x{msg.height} with k={k.tolist()}: need positive fx, fy and size")
+        raise FrameError(
+            "camera_info_invalid",
+            f"CameraInfo {msg.width}x{msg.height} with k={k.tolist()}: need positive fx, fy and size",
+        )
     return Intrinsics.from_matrix(k, msg.width, msg.height)
 
 
@@ -104,8 +111,15 @@ def array_to_image(array: np.ndarray, encoding: str, header: Header) -> Image:
         raise ValueError(f"unsupported encoding {encoding!r}; expected one of {', '.join(_CHANNELS)}")
     a = np.ascontiguousarray(array)
     h, w = a.shape[:2]
-    return Image(header=header, height=h, width=w, encoding=encoding, is_bigendian=0,
-                 step=w * _CHANNELS[encoding] * a.dtype.itemsize, data=a.astype(a.dtype.newbyteorder("<"), copy=False).tobytes())
+    return Image(
+        header=header,
+        height=h,
+        width=w,
+        encoding=encoding,
+        is_bigendian=0,
+        step=w * _CHANNELS[encoding] * a.dtype.itemsize,
+        data=a.astype(a.dtype.newbyteorder("<"), copy=False).tobytes(),
+    )
 
 
 def mask_to_image(mask: np.ndarray, header: Header) -> Image:
@@ -117,7 +131,9 @@ def pose_msg(t: np.ndarray, q: np.ndarray) -> Pose:
     """``geometry_msgs/Pose`` of ``t (3,)`` metres and core ``q (4,) (w, x, y, z)``."""
     p = Pose()
     p.position.x, p.position.y, p.position.z = (float(v) for v in t)
-    p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w = (float(v) for v in geometry.quat_to_ros(np.asarray(q)))
+    p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w = (
+        float(v) for v in geometry.quat_to_ros(np.asarray(q))
+    )
     return p
 
 

@@ -108,14 +108,18 @@ def merged_profiles(files: list[Path], publication_mode: str | None) -> tuple[ET
     for path in files:
         top = ET.parse(path).getroot()
         _strip_namespaces(top)
-        for element in ([top] if top.tag != "dds" else list(top)):
+        for element in [top] if top.tag != "dds" else list(top):
             root.append(element)
     profiles = root.find("profiles")
     if profiles is None:
         profiles = ET.SubElement(root, "profiles")
     kept: list[str] = []
     mode = {"ASYNCHRONOUS": "ASYNCHRONOUS", "AUTO": None}.get(publication_mode or "", "SYNCHRONOUS")
-    for kind, name in (("participant", "vlocnetpp_participant"), ("data_writer", "vlocnetpp_writer"), ("data_reader", "vlocnetpp_reader")):
+    for kind, name in (
+        ("participant", "vlocnetpp_participant"),
+        ("data_writer", "vlocnetpp_writer"),
+        ("data_reader", "vlocnetpp_reader"),
+    ):
         found = [e for p in root.iter("profiles") for e in p.findall(kind)]
         if not any(e.get("is_default_profile", "").lower() == "true" for e in found):
             found.append(ET.SubElement(profiles, kind, {"profile_name": name, "is_default_profile": "true"}))
@@ -142,14 +146,18 @@ def apply(environ: MutableMapping[str, str] | None = None, cwd: Path | None = No
     if not rmw.startswith("rmw_fastrtps"):
         return Applied(f"RMW {rmw}: no Fast DDS profile applied")
     if USE_XML_ENV in environ:
-        return Applied(f"{USE_XML_ENV}={environ[USE_XML_ENV]} is set: the Fast DDS QoS are left as configured "
-                       "(history memory policy not changed; see docs/node.md, 'Memory under bad input')")
+        return Applied(
+            f"{USE_XML_ENV}={environ[USE_XML_ENV]} is set: the Fast DDS QoS are left as configured "
+            "(history memory policy not changed; see docs/node.md, 'Memory under bad input')"
+        )
     files = user_files(environ, cwd)
     try:
         tree, kept = merged_profiles(files, environ.get("RMW_FASTRTPS_PUBLICATION_MODE"))
     except (OSError, ET.ParseError) as err:
-        return Applied(f"cannot merge the Fast DDS profile {', '.join(map(str, files))} ({err}): used as it is, "
-                       "history memory policy not changed")
+        return Applied(
+            f"cannot merge the Fast DDS profile {', '.join(map(str, files))} ({err}): used as it is, "
+            "history memory policy not changed"
+        )
     fd, name = tempfile.mkstemp(prefix="vlocnetpp_fastdds_", suffix=".xml")
     with os.fdopen(fd, "wb") as out:
         tree.write(out, encoding="UTF-8", xml_declaration=True)
@@ -157,5 +165,11 @@ def apply(environ: MutableMapping[str, str] | None = None, cwd: Path | None = No
     environ.update({PROFILES_ENV: name, USE_XML_ENV: "1", SKIP_CWD_ENV: "1"})
     merged = f", merged with {', '.join(map(str, files))}" if files else ""
     kept_text = f"; kept the user's {'; '.join(kept)}" if kept else ""
-    return Applied(f"Fast DDS: DataReaders use the {READER_POLICY} history memory policy (memory bounded under bursts from "
-                   f"deeper publishers){merged}{kept_text}", True, Path(name), saved, environ)
+    return Applied(
+        f"Fast DDS: DataReaders use the {READER_POLICY} history memory policy (memory bounded under bursts from "
+        f"deeper publishers){merged}{kept_text}",
+        True,
+        Path(name),
+        saved,
+        environ,
+    )

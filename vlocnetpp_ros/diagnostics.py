@@ -63,8 +63,14 @@ class NodeStats:
             self._arrivals.append(now)
             self._trim(now)
 
-    def processed_frame(self, now: float, latency_s: float, reset_reason: str | None, source: str = "network",
-                        refine_status: str | None = None) -> None:
+    def processed_frame(
+        self,
+        now: float,
+        latency_s: float,
+        reset_reason: str | None,
+        source: str = "network",
+        refine_status: str | None = None,
+    ) -> None:
         """A frame answered; ``source`` of its published pose and ``refine_status`` of the refinement tried on it
         (``LocalizerResult``; None: none tried)."""
         with self._lock:
@@ -135,9 +141,17 @@ class NodeStats:
         elif values["processing_rate_hz"] == 0:
             level, message = DiagnosticStatus.WARN, "frames arrive but none are processed (see rejected.*)"
         else:
-            level, message = DiagnosticStatus.OK, f"{values['processing_rate_hz']:.1f} Hz, median latency {values['latency_ms_median']:.0f} ms"
-        return DiagnosticStatus(level=level, name=name, message=message, hardware_id=hardware_id,
-                                values=[KeyValue(key=k, value=_fmt(v)) for k, v in values.items()])
+            level, message = (
+                DiagnosticStatus.OK,
+                f"{values['processing_rate_hz']:.1f} Hz, median latency {values['latency_ms_median']:.0f} ms",
+            )
+        return DiagnosticStatus(
+            level=level,
+            name=name,
+            message=message,
+            hardware_id=hardware_id,
+            values=[KeyValue(key=k, value=_fmt(v)) for k, v in values.items()],
+        )
 
 
 def _fmt(v: float | int | str) -> str:

@@ -64,15 +64,22 @@ class _Probe(DdsClient):
         self.seg_at: dict[float, float] = {}
         stamp_of = conversions.stamp_to_seconds
         self.subs = [
-            self.node.create_subscription(PoseStamped, f"{namespace}/vlocnet/pose",
-                                          lambda m: self.pose_at.setdefault(stamp_of(m.header.stamp), time.perf_counter()), _QOS),
-            self.node.create_subscription(Image, f"{namespace}/vlocnet/segmentation",
-                                          lambda m: self.seg_at.setdefault(stamp_of(m.header.stamp), time.perf_counter()), _QOS),
+            self.node.create_subscription(
+                PoseStamped,
+                f"{namespace}/vlocnet/pose",
+                lambda m: self.pose_at.setdefault(stamp_of(m.header.stamp), time.perf_counter()),
+                _QOS,
+            ),
+            self.node.create_subscription(
+                Image,
+                f"{namespace}/vlocnet/segmentation",
+                lambda m: self.seg_at.setdefault(stamp_of(m.header.stamp), time.perf_counter()),
+                _QOS,
+            ),
         ]
 
     def connected(self) -> bool:
         return self.image_pub.get_subscription_count() > 0 and all(s.get_publisher_count() > 0 for s in self.subs)
-
 
 
 def large_data_profile() -> Path:
@@ -91,9 +98,20 @@ def large_data_profile() -> Path:
     raise UserError(f"the Fast DDS profile {PROFILE} is missing (looked for {', '.join(map(str, candidates))})")
 
 
-def measure(checkpoint: str, frames: np.ndarray, repetitions: int, warmup: int, device: str = "cpu", backend: str = "torch",
-            num_threads: int = 0, transport: str = "large_data", startup_timeout_s: float = 120.0, answer_timeout_s: float = 30.0,
-            map_path: str | None = None, refine_every: int = 1) -> dict:
+def measure(
+    checkpoint: str,
+    frames: np.ndarray,
+    repetitions: int,
+    warmup: int,
+    device: str = "cpu",
+    backend: str = "torch",
+    num_threads: int = 0,
+    transport: str = "large_data",
+    startup_timeout_s: float = 120.0,
+    answer_timeout_s: float = 30.0,
+    map_path: str | None = None,
+    refine_every: int = 1,
+) -> dict:
     """Run the node and the bare Localizer interleaved over ``frames (N, H, W, 3) uint8 RGB`` (cycled); see module doc.
     ``map_path``: both refine against this keyframe map every ``refine_every``-th frame.
 
@@ -105,7 +123,9 @@ def measure(checkpoint: str, frames: np.ndarray, repetitions: int, warmup: int, 
         raise UserError(f"transport must be large_data or environment, got {transport!r}")
     namespace = f"/vlocnetpp_latency_{os.getpid()}"
     start = time.perf_counter()
-    argv = localizer_command() + node_arguments(namespace, checkpoint, False, False, 1.0, device, map_path, refine_every)
+    argv = localizer_command() + node_arguments(
+        namespace, checkpoint, False, False, 1.0, device, map_path, refine_every
+    )
     num_threads = use_threads(num_threads)  # the node resolves 0 the same way: both sides run alike
     argv += ["-p", f"backend:={backend}", "-p", f"num_threads:={num_threads}"]
     probe = _Probe(namespace)
@@ -115,14 +135,22 @@ def measure(checkpoint: str, frames: np.ndarray, repetitions: int, warmup: int, 
             node.check_alive()
             if time.perf_counter() - start > startup_timeout_s:
                 raise UserError(f"the localizer node did not connect within {startup_timeout_s:.0f} s:\n{node.tail()}")
-        localizer = Localizer.from_checkpoint(checkpoint, device=device, num_threads=num_threads, backend=backend, map_path=map_path,
-                                              refine_every=refine_every)
+        localizer = Localizer.from_checkpoint(
+            checkpoint,
+            device=device,
+            num_threads=num_threads,
+            backend=backend,
+            map_path=map_path,
+            refine_every=refine_every,
+        )
         startup_s = time.perf_counter() - start
         latency, step = [], []
         for k in range(warmup + repetitions):
             image = frames[k % len(frames)]
             stamp = k * FRAME_INTERVAL_S
-            msg = conversions.array_to_image(image, "rgb8", Header(stamp=conversions.seconds_to_stamp(stamp), frame_id="camera"))
+            msg = conversions.array_to_image(
+                image, "rgb8", Header(stamp=conversions.seconds_to_stamp(stamp), frame_id="camera")
+            )
             stamp = conversions.stamp_to_seconds(msg.header.stamp)
             if k % 2 == 0:
                 node_s = _through_node(probe, node, msg, stamp, answer_timeout_s)
@@ -133,8 +161,13 @@ def measure(checkpoint: str, frames: np.ndarray, repetitions: int, warmup: int, 
             if k >= warmup:
                 latency.append(node_s)
                 step.append(bare_s)
-        return {"latency_s": latency, "step_s": step, "node_peak_rss_mb": proc_status_mb(node.proc.pid, "VmHWM"),
-                "node_rss_mb": proc_status_mb(node.proc.pid, "VmRSS"), "startup_s": startup_s}
+        return {
+            "latency_s": latency,
+            "step_s": step,
+            "node_peak_rss_mb": proc_status_mb(node.proc.pid, "VmHWM"),
+            "node_rss_mb": proc_status_mb(node.proc.pid, "VmRSS"),
+            "startup_s": startup_s,
+        }
     finally:
         node.stop()
         probe.close()
@@ -145,7 +178,9 @@ def _through_node(probe: _Probe, node: _NodeProcess, msg: Image, stamp: float, t
     probe.image_pub.publish(msg)
     if not probe.spin_until(time.monotonic() + timeout_s, lambda: stamp in probe.pose_at and stamp in probe.seg_at):
         node.check_alive()
-        raise UserError(f"the localizer node did not answer the frame stamped {stamp:.3f} s within {timeout_s:.0f} s:\n{node.tail()}")
+        raise UserError(
+            f"the localizer node did not answer the frame stamped {stamp:.3f} s within {timeout_s:.0f} s:\n{node.tail()}"
+        )
     return probe.pose_at[stamp] - sent
 
 
@@ -158,23 +193,51 @@ def _bare(localizer: Localizer, image: np.ndarray, stamp: float) -> float:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m vlocnetpp_ros.latency_bench", description=__doc__.splitlines()[0])
     parser.add_argument("--checkpoint", required=True, metavar="NAME.safetensors")
-    parser.add_argument("--frames", required=True, metavar="FRAMES.npy", help="(N, H, W, 3) uint8 RGB camera frames, cycled")
+    parser.add_argument(
+        "--frames", required=True, metavar="FRAMES.npy", help="(N, H, W, 3) uint8 RGB camera frames, cycled"
+    )
     parser.add_argument("--repetitions", type=int, default=20, metavar="N", help="frames measured (default 20)")
-    parser.add_argument("--warmup", type=int, default=3, metavar="N", help="frames sent first and not measured (default 3)")
+    parser.add_argument(
+        "--warmup", type=int, default=3, metavar="N", help="frames sent first and not measured (default 3)"
+    )
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--backend", choices=BACKENDS, default="torch")
-    parser.add_argument("--transport", choices=("large_data", "environment"), default="large_data",
-                        help="DDS settings of both sides: the shipped large-data Fast DDS profile (default) or the environment's")
-    parser.add_argument("--num-threads", type=int, default=0, metavar="N", help="torch / ONNX Runtime threads of both sides (0: default)")
-    parser.add_argument("--map", default=None, metavar="MAP.npz", help="keyframe map both sides refine against (default: none)")
-    parser.add_argument("--refine-every", type=int, default=1, metavar="K", help="with --map: refine every K-th frame (default 1)")
+    parser.add_argument(
+        "--transport",
+        choices=("large_data", "environment"),
+        default="large_data",
+        help="DDS settings of both sides: the shipped large-data Fast DDS profile (default) or the environment's",
+    )
+    parser.add_argument(
+        "--num-threads",
+        type=int,
+        default=0,
+        metavar="N",
+        help="torch / ONNX Runtime threads of both sides (0: default)",
+    )
+    parser.add_argument(
+        "--map", default=None, metavar="MAP.npz", help="keyframe map both sides refine against (default: none)"
+    )
+    parser.add_argument(
+        "--refine-every", type=int, default=1, metavar="K", help="with --map: refine every K-th frame (default 1)"
+    )
     args = parser.parse_args(argv)
     try:
         frames = np.load(args.frames)
         if frames.ndim != 4 or frames.shape[-1] != 3 or frames.dtype != np.uint8:
             raise UserError(f"{args.frames}: expected (N, H, W, 3) uint8 frames, got {frames.shape} {frames.dtype}")
-        result = measure(args.checkpoint, frames, args.repetitions, args.warmup, args.device, args.backend, args.num_threads, args.transport,
-                         map_path=args.map, refine_every=args.refine_every)
+        result = measure(
+            args.checkpoint,
+            frames,
+            args.repetitions,
+            args.warmup,
+            args.device,
+            args.backend,
+            args.num_threads,
+            args.transport,
+            map_path=args.map,
+            refine_every=args.refine_every,
+        )
     except UserError as err:
         print(f"latency_bench: error: {err}", file=sys.stderr)
         return 2

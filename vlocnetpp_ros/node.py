@@ -86,6 +86,7 @@ CAMERA_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=R
 DEPTH_MATCH_FRAMES = 8  # depth images (or stamps of refused ones) kept for matching colour stamps
 DEPTH_WAIT_S = 0.05  # how long a colour frame waits for its depth image (in the worker)
 
+
 class LocalizerNode(Node):
     """The node; raises :class:`UserError` at construction when the checkpoint cannot be used."""
 
@@ -93,19 +94,39 @@ class LocalizerNode(Node):
         super().__init__("localizer", **kwargs)
         for name, (default, description) in PARAMETERS.items():
             # camera_extrinsics: any type, checked below, so that [0, 0, 0, 1, 0, 0, 0] (integers) is accepted too
-            self.declare_parameter(name, default, ParameterDescriptor(description=description, read_only=True,
-                                                                      dynamic_typing=name == "camera_extrinsics"))
+            self.declare_parameter(
+                name,
+                default,
+                ParameterDescriptor(
+                    description=description, read_only=True, dynamic_typing=name == "camera_extrinsics"
+                ),
+            )
         p = {name: self.get_parameter(name).value for name in PARAMETERS}
         self.params = p
         check_parameters(p)
         self.extrinsics = extrinsics_of(p)
         checkpoint = Path(p["checkpoint"]) if p["checkpoint"] else default_checkpoint()
         map_path = map_of(p, checkpoint, self.get_logger().warning)
-        self.localizer = Localizer.from_checkpoint(checkpoint, device=p["device"], max_gap_s=p["max_gap_s"], num_threads=resolve_threads(p["num_threads"]),
-                                                   backend=p["backend"], map_path=map_path, refine_every=p["refine_every"])
+        self.localizer = Localizer.from_checkpoint(
+            checkpoint,
+            device=p["device"],
+            max_gap_s=p["max_gap_s"],
+            num_threads=resolve_threads(p["num_threads"]),
+            backend=p["backend"],
+            map_path=map_path,
+            refine_every=p["refine_every"],
+        )
         w, h = self.localizer.input_size
-        self.stats = NodeStats(info={"checkpoint": str(checkpoint), "device": str(p["device"]), "backend": p["backend"], "input_size": f"{w}x{h}",
-                                     "map": str(map_path or "none")}, refinement=map_path is not None)
+        self.stats = NodeStats(
+            info={
+                "checkpoint": str(checkpoint),
+                "device": str(p["device"]),
+                "backend": p["backend"],
+                "input_size": f"{w}x{h}",
+                "map": str(map_path or "none"),
+            },
+            refinement=map_path is not None,
+        )
         self.warn = ThrottledLog(self.get_logger().warning)
         # a call site of its own: rclpy refuses two severities logged from one line (ThrottledLog's)
         self.note = ThrottledLog(lambda line: self.get_logger().info(line))
@@ -117,7 +138,9 @@ class LocalizerNode(Node):
 
         # outputs in the node's namespace (topics.py names them as in the root namespace)
         self.pose_pub = self.create_publisher(PoseStamped, topics.POSE_TOPIC.lstrip("/"), 10)
-        self.pose_cov_pub = self.create_publisher(PoseWithCovarianceStamped, topics.POSE_WITH_COVARIANCE_TOPIC.lstrip("/"), 10)
+        self.pose_cov_pub = self.create_publisher(
+            PoseWithCovarianceStamped, topics.POSE_WITH_COVARIANCE_TOPIC.lstrip("/"), 10
+        )
         self.odom_pub = self.create_publisher(Odometry, topics.ODOMETRY_TOPIC.lstrip("/"), 10)
         self.seg_pub = None  # advertised only when there is something to publish
         if p["publish_segmentation"] and self.localizer.has_segmentation:
@@ -147,9 +170,13 @@ class LocalizerNode(Node):
         self._worker.start()
         extrinsics = (self.extrinsics or CameraExtrinsics.identity()).values()
         pose_of = f"{p['base_frame']} (camera_extrinsics {extrinsics})" if p["base_frame"] else "the camera"
-        refining = f"refined against {map_path} every {p['refine_every']} frame(s)" if map_path else "no refinement (no map)"
-        self.get_logger().info(f"localizer ready: {checkpoint} on {p['device']} ({p['backend']}, network input {w}x{h}), camera {image_topic}, "
-                               f"publishing the pose of {pose_of}, {refining}")
+        refining = (
+            f"refined against {map_path} every {p['refine_every']} frame(s)" if map_path else "no refinement (no map)"
+        )
+        self.get_logger().info(
+            f"localizer ready: {checkpoint} on {p['device']} ({p['backend']}, network input {w}x{h}), camera {image_topic}, "
+            f"publishing the pose of {pose_of}, {refining}"
+        )
 
     # ------------------------------------------------------------------ subscriptions
 
@@ -165,13 +192,17 @@ class LocalizerNode(Node):
             self.destroy_subscription(old)
         msg_type, callback = self._inputs[topic]
         events = SubscriptionEventCallbacks(incompatible_qos=lambda _status, topic=topic: self._incompatible.add(topic))
-        self._subscriptions_by_topic[topic] = self.create_subscription(msg_type, topic, callback, CAMERA_QOS, event_callbacks=events)
+        self._subscriptions_by_topic[topic] = self.create_subscription(
+            msg_type, topic, callback, CAMERA_QOS, event_callbacks=events
+        )
 
     def _resubscribe_incompatible(self) -> None:
         for topic in list(self._incompatible):
             self._incompatible.discard(topic)
-            self.get_logger().info(f"a publisher on {topic} offers incompatible QoS (a best-effort camera started after this node?): "
-                                   "subscribing again so that BEST_AVAILABLE matches it")
+            self.get_logger().info(
+                f"a publisher on {topic} offers incompatible QoS (a best-effort camera started after this node?): "
+                "subscribing again so that BEST_AVAILABLE matches it"
+            )
             self._subscribe(topic)
 
     # ------------------------------------------------------------------ callbacks (never block)
@@ -236,7 +267,9 @@ class LocalizerNode(Node):
             self._ignore(err)  # use the predicted depth for this frame
             result = self.localizer.step(image, encoding, stamp, intrinsics=self._intrinsics)
         if result.reset_reason not in (None, "start"):
-            self.note(f"reset.{result.reset_reason}", f"temporal state reset ({result.reset_reason}) at stamp {stamp:.3f}")
+            self.note(
+                f"reset.{result.reset_reason}", f"temporal state reset ({result.reset_reason}) at stamp {stamp:.3f}"
+            )
         frame = msg.header.frame_id
         network = (result.network_t, result.network_q)
         if self.extrinsics is not None:
@@ -247,8 +280,13 @@ class LocalizerNode(Node):
         if self.network_pose_pub is not None:
             self.network_pose_pub.publish(PoseStamped(header=pose_header, pose=conversions.pose_msg(*network)))
         self.pose_cov_pub.publish(conversions.pose_with_covariance(result, pose_header))
-        self.odom_pub.publish(conversions.odometry(result, Header(stamp=msg.header.stamp, frame_id=self.params["odom_frame"]),
-                                                   self.params["base_frame"] or frame))
+        self.odom_pub.publish(
+            conversions.odometry(
+                result,
+                Header(stamp=msg.header.stamp, frame_id=self.params["odom_frame"]),
+                self.params["base_frame"] or frame,
+            )
+        )
         if self.seg_pub is not None:
             self.seg_pub.publish(conversions.mask_to_image(result.mask, Header(stamp=msg.header.stamp, frame_id=frame)))
         now = time.monotonic()
@@ -268,7 +306,9 @@ class LocalizerNode(Node):
             self._depth_arrived.wait_for(lambda: find() is not None, DEPTH_WAIT_S)
             entry = find()
         if entry is None:
-            self._ignore(FrameError("depth_missing", "no depth image with the colour image's stamp; using the predicted depth"))
+            self._ignore(
+                FrameError("depth_missing", "no depth image with the colour image's stamp; using the predicted depth")
+            )
             return None
         match = entry[1]
         if match is None:

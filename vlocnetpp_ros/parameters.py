@@ -15,25 +15,49 @@ PACKAGE = "vlocnetpp_ros"
 
 # name -> (default, description); every one is in config/localizer.yaml.
 PARAMETERS: dict[str, tuple[object, str]] = {
-    "checkpoint": ("", f"checkpoint NAME.safetensors (NAME.json next to it); empty: the shipped share/{PACKAGE}/{SHIPPED_MODEL}"),
+    "checkpoint": (
+        "",
+        f"checkpoint NAME.safetensors (NAME.json next to it); empty: the shipped share/{PACKAGE}/{SHIPPED_MODEL}",
+    ),
     "image_topic": (topics.IMAGE_TOPIC, "sensor_msgs/Image topic (with use_compressed: <image_topic>/compressed)"),
-    "depth_topic": ("", "aligned depth Image (32FC1 metres or 16UC1 mm, same stamp and size as the colour image); empty: predicted depth"),
+    "depth_topic": (
+        "",
+        "aligned depth Image (32FC1 metres or 16UC1 mm, same stamp and size as the colour image); empty: predicted depth",
+    ),
     "camera_info_topic": ("", "sensor_msgs/CameraInfo topic of the camera; empty: the checkpoint's default intrinsics"),
     "use_compressed": (False, "subscribe to sensor_msgs/CompressedImage (PNG/JPEG) on <image_topic>/compressed"),
     "map_frame": (topics.MAP_FRAME, "frame_id of the published global pose"),
     "odom_frame": (topics.ODOM_FRAME, "frame_id of the published odometry"),
-    "base_frame": ("", "frame whose pose is published (vlocnet/pose, pose_with_covariance, odometry child_frame_id), placed by "
-                   "camera_extrinsics (no TF lookup); empty: the camera's pose, odometry child = the image's frame_id"),
-    "camera_extrinsics": (list(IDENTITY_VALUES), "the camera's pose in base_frame, T_base_camera: x y z (m) qw qx qy qz (unit quaternion); "
-                          "camera = the images' optical frame (x right, y down, z forward); must be identity when base_frame is empty"),
-    "max_gap_s": (topics.DEFAULT_MAX_GAP_S, "reset the temporal state when consecutive processed frames are further apart than this (seconds)"),
+    "base_frame": (
+        "",
+        "frame whose pose is published (vlocnet/pose, pose_with_covariance, odometry child_frame_id), placed by "
+        "camera_extrinsics (no TF lookup); empty: the camera's pose, odometry child = the image's frame_id",
+    ),
+    "camera_extrinsics": (
+        list(IDENTITY_VALUES),
+        "the camera's pose in base_frame, T_base_camera: x y z (m) qw qx qy qz (unit quaternion); "
+        "camera = the images' optical frame (x right, y down, z forward); must be identity when base_frame is empty",
+    ),
+    "max_gap_s": (
+        topics.DEFAULT_MAX_GAP_S,
+        "reset the temporal state when consecutive processed frames are further apart than this (seconds)",
+    ),
     "publish_segmentation": (True, "publish the class-id mask on vlocnet/segmentation"),
     "device": ("cpu", "torch device: cpu or cuda (cuda:N)"),
     "num_threads": (0, "CPU inference threads (torch or ONNX Runtime); 0: all cores but one, at least 1"),
-    "backend": ("torch", "inference backend: torch, or onnx (ONNX Runtime; NAME.onnx next to the checkpoint or a cached export)"),
-    "map": ("", f"keyframe map (vlocnetpp map build) to refine the global pose against; empty: no refinement; {MAP_AUTO}: "
-            "NAME.map.npz beside the checkpoint NAME.safetensors (none, with a warning, when it is missing); else a path"),
-    "refine_every": (1, "with a map: refine every k-th frame, the refined pose moved on by the odometry in between (1: every frame)"),
+    "backend": (
+        "torch",
+        "inference backend: torch, or onnx (ONNX Runtime; NAME.onnx next to the checkpoint or a cached export)",
+    ),
+    "map": (
+        "",
+        f"keyframe map (vlocnetpp map build) to refine the global pose against; empty: no refinement; {MAP_AUTO}: "
+        "NAME.map.npz beside the checkpoint NAME.safetensors (none, with a warning, when it is missing); else a path",
+    ),
+    "refine_every": (
+        1,
+        "with a map: refine every k-th frame, the refined pose moved on by the odometry in between (1: every frame)",
+    ),
 }
 # What config/localizer.yaml sets apart from the defaults above: the package's launch YAML refines against the
 # shipped map beside the shipped model (a node started without it does not refine).
@@ -45,7 +69,9 @@ def default_checkpoint() -> Path:
     try:
         return shipped_checkpoint()
     except FileNotFoundError as err:
-        raise UserError(f"no 'checkpoint' parameter given and {err}; set one with --ros-args -p checkpoint:=/path/NAME.safetensors") from None
+        raise UserError(
+            f"no 'checkpoint' parameter given and {err}; set one with --ros-args -p checkpoint:=/path/NAME.safetensors"
+        ) from None
 
 
 def check_parameters(p: dict) -> None:
@@ -62,7 +88,9 @@ def check_parameters(p: dict) -> None:
     if not p["image_topic"]:
         raise UserError("parameter image_topic is empty")
     if p["refine_every"] < 1:
-        raise UserError(f"parameter refine_every must be >= 1 (1: refine every frame, k: every k-th frame), got {p['refine_every']}")
+        raise UserError(
+            f"parameter refine_every must be >= 1 (1: refine every frame, k: every k-th frame), got {p['refine_every']}"
+        )
 
 
 def extrinsics_of(p: dict) -> CameraExtrinsics | None:
@@ -72,8 +100,10 @@ def extrinsics_of(p: dict) -> CameraExtrinsics | None:
     if p["base_frame"]:
         return None if ext.is_identity else ext
     if not ext.is_identity:
-        raise UserError(f"parameter camera_extrinsics is {ext.values()} but base_frame is empty: set base_frame to the frame "
-                        "the extrinsics place the camera in, or leave camera_extrinsics at identity [0, 0, 0, 1, 0, 0, 0]")
+        raise UserError(
+            f"parameter camera_extrinsics is {ext.values()} but base_frame is empty: set base_frame to the frame "
+            "the extrinsics place the camera in, or leave camera_extrinsics at identity [0, 0, 0, 1, 0, 0, 0]"
+        )
     return None
 
 

@@ -52,8 +52,13 @@ from vlocnetpp_ros.dds_client import RECORD as _RECORD
 from vlocnetpp_ros.dds_client import RELIABLE as _RELIABLE
 from vlocnetpp_ros.dds_client import DdsClient
 
-_OUTPUT_TYPES = {topics.POSE_TOPIC: PoseStamped, topics.POSE_WITH_COVARIANCE_TOPIC: PoseWithCovarianceStamped,
-                 topics.ODOMETRY_TOPIC: Odometry, topics.SEGMENTATION_TOPIC: Image, topics.NETWORK_POSE_TOPIC: PoseStamped}
+_OUTPUT_TYPES = {
+    topics.POSE_TOPIC: PoseStamped,
+    topics.POSE_WITH_COVARIANCE_TOPIC: PoseWithCovarianceStamped,
+    topics.ODOMETRY_TOPIC: Odometry,
+    topics.SEGMENTATION_TOPIC: Image,
+    topics.NETWORK_POSE_TOPIC: PoseStamped,
+}
 CAMERA_INFO_SETTLE_S = 0.5
 
 
@@ -73,8 +78,16 @@ def localizer_command() -> list[str]:
     return [sys.executable, "-m", "vlocnetpp_ros.node"]
 
 
-def node_arguments(namespace: str, checkpoint: str | Path, compressed: bool, use_depth: bool, max_gap_s: float, device: str,
-                   map_path: str | Path | None = None, refine_every: int = 1) -> list[str]:
+def node_arguments(
+    namespace: str,
+    checkpoint: str | Path,
+    compressed: bool,
+    use_depth: bool,
+    max_gap_s: float,
+    device: str,
+    map_path: str | Path | None = None,
+    refine_every: int = 1,
+) -> list[str]:
     """``--ros-args`` for the node: inputs on ``<namespace>/camera/...``, outputs under ``<namespace>/vlocnet``;
     ``map_path``: the keyframe map to refine against every ``refine_every``-th frame (None: no refinement)."""
     params = {
@@ -107,8 +120,14 @@ class _NodeProcess:
 
     def __init__(self, argv: list[str], env: dict[str, str] | None = None):
         self.log = tempfile.TemporaryFile(mode="w+b")
-        self.proc = subprocess.Popen(argv, stdout=self.log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env,
-                                     preexec_fn=_die_with_parent if sys.platform == "linux" else None)
+        self.proc = subprocess.Popen(
+            argv,
+            stdout=self.log,
+            stderr=subprocess.STDOUT,
+            stdin=subprocess.DEVNULL,
+            env=env,
+            preexec_fn=_die_with_parent if sys.platform == "linux" else None,
+        )
 
     def tail(self, lines: int = 15) -> str:
         self.log.seek(0)
@@ -136,13 +155,24 @@ class _Bridge(DdsClient):
         """``outputs``: the ``/vlocnet/*`` topics the node publishes for this checkpoint (``checkpoint_output_types``)."""
         super().__init__("vlocnetpp_replay_bridge", namespace)
         image_type = CompressedImage if compressed else Image
-        self.image_pub = self.node.create_publisher(image_type, f"{namespace}/camera/image" + ("/compressed" if compressed else ""), _RELIABLE)
+        self.image_pub = self.node.create_publisher(
+            image_type, f"{namespace}/camera/image" + ("/compressed" if compressed else ""), _RELIABLE
+        )
         self.info_pub = self.node.create_publisher(CameraInfo, f"{namespace}/camera/camera_info", _RELIABLE)
-        self.depth_pub = self.node.create_publisher(Image, f"{namespace}/camera/depth", _RELIABLE) if use_depth else None
+        self.depth_pub = (
+            self.node.create_publisher(Image, f"{namespace}/camera/depth", _RELIABLE) if use_depth else None
+        )
         self.received: deque[tuple[str, bytes]] = deque()
         self.subs = [
-            self.node.create_subscription(msg_type, f"{namespace}{topic}", lambda data, topic=topic: self.received.append((topic, data)), _RECORD, raw=True)
-            for topic, msg_type in _OUTPUT_TYPES.items() if topic in outputs
+            self.node.create_subscription(
+                msg_type,
+                f"{namespace}{topic}",
+                lambda data, topic=topic: self.received.append((topic, data)),
+                _RECORD,
+                raw=True,
+            )
+            for topic, msg_type in _OUTPUT_TYPES.items()
+            if topic in outputs
         ]
 
     def connected(self) -> bool:
@@ -150,12 +180,23 @@ class _Bridge(DdsClient):
         return all(p.get_subscription_count() > 0 for p in pubs) and all(s.get_publisher_count() > 0 for s in self.subs)
 
 
-
-def replay_through_node(bag: str | Path, out: str | Path, checkpoint: str | Path, image_topic: str | None = None,
-                        rate_hz: float | None = None, max_gap_s: float = 1.0, use_depth: bool = False, device: str = "cpu",
-                        force: bool = False, progress: bool = True, startup_timeout_s: float = 120.0,
-                        answer_timeout_s: float = 30.0, quiet_s: float = 3.0, map_path: str | Path | None = None,
-                        refine_every: int = 1) -> ReplaySummary:
+def replay_through_node(
+    bag: str | Path,
+    out: str | Path,
+    checkpoint: str | Path,
+    image_topic: str | None = None,
+    rate_hz: float | None = None,
+    max_gap_s: float = 1.0,
+    use_depth: bool = False,
+    device: str = "cpu",
+    force: bool = False,
+    progress: bool = True,
+    startup_timeout_s: float = 120.0,
+    answer_timeout_s: float = 30.0,
+    quiet_s: float = 3.0,
+    map_path: str | Path | None = None,
+    refine_every: int = 1,
+) -> ReplaySummary:
     """Replay ``bag`` through the node into ``out`` (see module doc).
 
     ``map_path``: a keyframe map file the node refines against every ``refine_every``-th frame (None: none).
@@ -169,7 +210,9 @@ def replay_through_node(bag: str | Path, out: str | Path, checkpoint: str | Path
     summary = ReplaySummary(Path(out))
     namespace = f"/vlocnetpp_replay_{os.getpid()}"
     start = time.perf_counter()
-    outputs = checkpoint_output_types(checkpoint, map_path is not None)  # a clear error now rather than a node that fails to start
+    outputs = checkpoint_output_types(
+        checkpoint, map_path is not None
+    )  # a clear error now rather than a node that fails to start
     with sigterm_as_interrupt(), BagReader(bag) as reader, ExitStack() as stack:
         topic = choose_image_topic(reader.topics, image_topic, reader.path)
         compressed = reader.topics[topic] == messages.COMPRESSED_IMAGE
@@ -178,10 +221,14 @@ def replay_through_node(bag: str | Path, out: str | Path, checkpoint: str | Path
         writer = BagWriter(out, force=force)  # refuses an existing output before the node starts
         bridge = _Bridge(namespace, compressed, use_depth, outputs)
         stack.callback(bridge.close)
-        node = _NodeProcess(localizer_command() + node_arguments(namespace, checkpoint, compressed, use_depth, max_gap_s, device,
-                                                                 map_path, refine_every))
+        node = _NodeProcess(
+            localizer_command()
+            + node_arguments(namespace, checkpoint, compressed, use_depth, max_gap_s, device, map_path, refine_every)
+        )
         stack.callback(node.stop)
-        bar = stack.enter_context(tqdm(total=reader.count(topic), unit="frame", desc="replay (node)", disable=not progress, file=sys.stderr))
+        bar = stack.enter_context(
+            tqdm(total=reader.count(topic), unit="frame", desc="replay (node)", disable=not progress, file=sys.stderr)
+        )
         deadline = time.monotonic() + startup_timeout_s
         while not bridge.spin_until(min(deadline, time.monotonic() + 0.2), bridge.connected):
             node.check_alive()
@@ -200,8 +247,18 @@ def replay_through_node(bag: str | Path, out: str | Path, checkpoint: str | Path
 class _Player:
     """Publishes the bag's frames to the node, paced, and writes the inputs and the node's answers."""
 
-    def __init__(self, reader: BagReader, writer: BagWriter, bridge: _Bridge, node: _NodeProcess, topic: str, use_depth: bool,
-                 summary: ReplaySummary, bar, n_outputs: int):
+    def __init__(
+        self,
+        reader: BagReader,
+        writer: BagWriter,
+        bridge: _Bridge,
+        node: _NodeProcess,
+        topic: str,
+        use_depth: bool,
+        summary: ReplaySummary,
+        bar,
+        n_outputs: int,
+    ):
         """``n_outputs``: how many output topics answer one frame."""
         self.reader, self.writer, self.bridge, self.node = reader, writer, bridge, node
         self.n_outputs = n_outputs
@@ -291,10 +348,20 @@ def main(argv: list[str] | None = None) -> int:
     add_arguments(parser)
     args = parser.parse_args(argv)
     try:
-        summary = replay_through_node(args.bag, args.out, args.checkpoint, image_topic=args.image_topic, rate_hz=parse_rate(args.rate),
-                                      max_gap_s=args.max_gap_s, use_depth=args.use_depth, device=args.device,
-                                      force=args.force, progress=not args.no_progress, map_path=map_argument(args),
-                                      refine_every=args.refine_every)
+        summary = replay_through_node(
+            args.bag,
+            args.out,
+            args.checkpoint,
+            image_topic=args.image_topic,
+            rate_hz=parse_rate(args.rate),
+            max_gap_s=args.max_gap_s,
+            use_depth=args.use_depth,
+            device=args.device,
+            force=args.force,
+            progress=not args.no_progress,
+            map_path=map_argument(args),
+            refine_every=args.refine_every,
+        )
     except UserError as err:
         print(f"vlocnetpp replay: error: {err}", file=sys.stderr)
         return 2

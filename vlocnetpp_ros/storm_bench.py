@@ -68,14 +68,27 @@ class StormPublisher(DdsClient):
 
     def __init__(self, namespace: str, kind: PublisherKind, inputs: str, width: int, height: int, seed: int = 0):
         super().__init__("vlocnetpp_storm", namespace)
-        topics = {"image": (Image, "camera/image"), "depth": (Image, "camera/depth"), "camera_info": (CameraInfo, "camera/camera_info"),
-                  "compressed": (CompressedImage, "camera/image/compressed")}
-        self.pubs = {k: self.node.create_publisher(topics[k][0], f"{namespace}/{topics[k][1]}", kind.qos()) for k in INPUTS[inputs]}
+        topics = {
+            "image": (Image, "camera/image"),
+            "depth": (Image, "camera/depth"),
+            "camera_info": (CameraInfo, "camera/camera_info"),
+            "compressed": (CompressedImage, "camera/image/compressed"),
+        }
+        self.pubs = {
+            k: self.node.create_publisher(topics[k][0], f"{namespace}/{topics[k][1]}", kind.qos())
+            for k in INPUTS[inputs]
+        }
         self.poses: set[float] = set()
-        self.sub = self.node.create_subscription(PoseStamped, f"{namespace}/vlocnet/pose",
-                                                 lambda m: self.poses.add(conversions.stamp_to_seconds(m.header.stamp)), RECORD)
+        self.sub = self.node.create_subscription(
+            PoseStamped,
+            f"{namespace}/vlocnet/pose",
+            lambda m: self.poses.add(conversions.stamp_to_seconds(m.header.stamp)),
+            RECORD,
+        )
         rng = np.random.default_rng(seed)
-        base = cv2.resize(rng.integers(0, 256, (height // 8 + 4, width // 8 + 4, 3), dtype=np.uint8), (width + 32, height + 16))
+        base = cv2.resize(
+            rng.integers(0, 256, (height // 8 + 4, width // 8 + 4, 3), dtype=np.uint8), (width + 32, height + 16)
+        )
         self.frames = [np.ascontiguousarray(base[k : k + height, 2 * k : 2 * k + width]) for k in range(8)]
         self.metres = np.full((height, width), 3.0, np.float32)
         self.size = (width, height)
@@ -125,12 +138,26 @@ class StormPublisher(DdsClient):
         raise UserError(f"the node did not answer a good frame within {timeout_s:.0f} s:\n{node.tail()}")
 
 
-def run_kind(kind: PublisherKind, inputs: str, checkpoint: str | Path, storms: int, messages: int, width: int, height: int,
-             good_every: int = 50, pause_s: float = 0.02, seed: int = 0, command: list[str] | None = None,
-             env: dict[str, str] | None = None, startup_timeout_s: float = 120.0) -> dict:
+def run_kind(
+    kind: PublisherKind,
+    inputs: str,
+    checkpoint: str | Path,
+    storms: int,
+    messages: int,
+    width: int,
+    height: int,
+    good_every: int = 50,
+    pause_s: float = 0.02,
+    seed: int = 0,
+    command: list[str] | None = None,
+    env: dict[str, str] | None = None,
+    startup_timeout_s: float = 120.0,
+) -> dict:
     """One node, one publisher kind: ``{"rss_mb": [start, after storm 1, ...], "answer_s": [...], ...}``."""
     namespace = f"/vlocnetpp_storm_{os.getpid()}"
-    argv = (command or localizer_command()) + node_arguments(namespace, checkpoint, inputs == "compressed", inputs == "raw", 1.0, "cpu")
+    argv = (command or localizer_command()) + node_arguments(
+        namespace, checkpoint, inputs == "compressed", inputs == "raw", 1.0, "cpu"
+    )
     argv += ["-p", "num_threads:=1"]
     pub = StormPublisher(namespace, kind, inputs, width, height, seed)
     node = _NodeProcess(argv, env=env)
@@ -152,8 +179,16 @@ def run_kind(kind: PublisherKind, inputs: str, checkpoint: str | Path, storms: i
             answer_s.append(pub.answered(node))
             pub.spin_until(time.monotonic() + TRIM_WAIT_S)
             rss.append(proc_status_mb(node.proc.pid, "VmRSS"))
-        return {"publisher": str(kind), "input": inputs, "rss_mb": rss, "answer_s": answer_s, "storm_s": storm_s,
-                "peak_rss_mb": proc_status_mb(node.proc.pid, "VmHWM"), "messages_sent": pub.sent, "alive": node.proc.poll() is None}
+        return {
+            "publisher": str(kind),
+            "input": inputs,
+            "rss_mb": rss,
+            "answer_s": answer_s,
+            "storm_s": storm_s,
+            "peak_rss_mb": proc_status_mb(node.proc.pid, "VmHWM"),
+            "messages_sent": pub.sent,
+            "alive": node.proc.poll() is None,
+        }
     finally:
         node.stop()
         pub.close()
@@ -161,24 +196,40 @@ def run_kind(kind: PublisherKind, inputs: str, checkpoint: str | Path, storms: i
 
 def table(results: list[dict]) -> str:
     """The runs as a Markdown table: RSS at the start and after each storm, growth after the first storm."""
-    rows = ["| publisher | input | RSS start, after storms 1.. (MiB) | growth after storm 1 (MiB) | answered after each |",
-            "|---|---|---|---|---|"]
+    rows = [
+        "| publisher | input | RSS start, after storms 1.. (MiB) | growth after storm 1 (MiB) | answered after each |",
+        "|---|---|---|---|---|",
+    ]
     for r in results:
         rss = r["rss_mb"]
-        rows.append(f"| {r['publisher']} | {r['input']} | {', '.join(f'{v:.0f}' for v in rss)} | {rss[-1] - rss[1]:+.0f} | "
-                    f"{'yes' if r['alive'] else 'no'} |")
+        rows.append(
+            f"| {r['publisher']} | {r['input']} | {', '.join(f'{v:.0f}' for v in rss)} | {rss[-1] - rss[1]:+.0f} | "
+            f"{'yes' if r['alive'] else 'no'} |"
+        )
     return "\n".join(rows)
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m vlocnetpp_ros.storm_bench", description=__doc__.splitlines()[0])
-    p.add_argument("--publisher", action="append", default=None, metavar="reliable:50",
-                   help="reliability:depth of the storming publisher (repeatable; default reliable:50)")
-    p.add_argument("--input", action="append", choices=sorted(INPUTS), default=None, help="node inputs (repeatable; default raw)")
+    p.add_argument(
+        "--publisher",
+        action="append",
+        default=None,
+        metavar="reliable:50",
+        help="reliability:depth of the storming publisher (repeatable; default reliable:50)",
+    )
+    p.add_argument(
+        "--input", action="append", choices=sorted(INPUTS), default=None, help="node inputs (repeatable; default raw)"
+    )
     p.add_argument("--storms", type=int, default=4)
     p.add_argument("--messages", type=int, default=10_000, help="malformed messages per storm (default 10,000)")
     p.add_argument("--good-every", type=int, default=50)
-    p.add_argument("--pause-ms", type=float, default=0.0, help="pause after every 10 messages (default 0: as fast as the publisher can)")
+    p.add_argument(
+        "--pause-ms",
+        type=float,
+        default=0.0,
+        help="pause after every 10 messages (default 0: as fast as the publisher can)",
+    )
     p.add_argument("--width", type=int, default=640)
     p.add_argument("--height", type=int, default=480)
     p.add_argument("--checkpoint", default=None, help="default: the shipped lite model")
@@ -195,8 +246,22 @@ def main(argv: list[str] | None = None) -> int:
         results = []
         for kind in kinds:
             for inputs in args.input or ["raw"]:
-                results.append(run_kind(kind, inputs, checkpoint, args.storms, args.messages, args.width, args.height,
-                                        args.good_every, args.pause_ms / 1000.0, args.seed, command, env))
+                results.append(
+                    run_kind(
+                        kind,
+                        inputs,
+                        checkpoint,
+                        args.storms,
+                        args.messages,
+                        args.width,
+                        args.height,
+                        args.good_every,
+                        args.pause_ms / 1000.0,
+                        args.seed,
+                        command,
+                        env,
+                    )
+                )
                 print(table(results[-1:]).splitlines()[-1], flush=True)
     except (UserError, FileNotFoundError) as err:
         print(f"storm_bench: error: {err}", file=sys.stderr)

@@ -31,8 +31,17 @@ from vlocnetpp_core.outputs import refuse_existing, remove_stale_temps, temp_dir
 ROSBAG2_VERSION = 9
 
 
-_LATCHED_QOS = Qos(QosHistory.KEEP_LAST, 1, QosReliability.RELIABLE, QosDurability.TRANSIENT_LOCAL, QosTime(0, 0), QosTime(0, 0),
-                   QosLiveliness.AUTOMATIC, QosTime(0, 0), False)
+_LATCHED_QOS = Qos(
+    QosHistory.KEEP_LAST,
+    1,
+    QosReliability.RELIABLE,
+    QosDurability.TRANSIENT_LOCAL,
+    QosTime(0, 0),
+    QosTime(0, 0),
+    QosLiveliness.AUTOMATIC,
+    QosTime(0, 0),
+    False,
+)
 
 
 class BagWriter:
@@ -67,7 +76,9 @@ class BagWriter:
             raise
         return self
 
-    def add_topic(self, topic: str, msgtype: str, msgdef: str | None = None, digest: str | None = None, latched: bool = False) -> None:
+    def add_topic(
+        self, topic: str, msgtype: str, msgdef: str | None = None, digest: str | None = None, latched: bool = False
+    ) -> None:
         """Declare ``topic`` of ``msgtype`` (e.g. ``sensor_msgs/msg/Image``). Types outside the Jazzy
         store need their ``msgdef`` text and RIHS01 ``digest`` (as read from another bag). ``latched``:
         offered as reliable, transient-local, depth 1 (as tf2's static broadcaster does), so that

@@ -83,8 +83,10 @@ class ConvertSummary:
     wall_s: float = 0.0
 
     def format(self) -> str:
-        lines = [f"wrote {self.path}: {self.frames} frames, {self.size_bytes / 2**20:.1f} MiB, "
-                 f"{self.duration_s:.1f} s of bag time, in {self.wall_s:.1f} s ({self.frames / max(self.wall_s, 1e-9):.1f} frames/s)"]
+        lines = [
+            f"wrote {self.path}: {self.frames} frames, {self.size_bytes / 2**20:.1f} MiB, "
+            f"{self.duration_s:.1f} s of bag time, in {self.wall_s:.1f} s ({self.frames / max(self.wall_s, 1e-9):.1f} frames/s)"
+        ]
         lines += [f"  {topic:<32} {count} messages" for topic, count in self.topics.items()]
         return "\n".join(lines)
 
@@ -108,7 +110,10 @@ def check_listed_images(index: DatasetIndex) -> None:
     for n, name, _, _ in read_poses(split_dir / "poses.txt"):
         if n not in present:
             missing = split_dir / "LeftImages" / (name if Path(name).suffix else f"{name}.png")
-            raise DataError(missing, f"image listed in {split_dir / 'poses.txt'} not found (use --skip-missing to leave such poses out)")
+            raise DataError(
+                missing,
+                f"image listed in {split_dir / 'poses.txt'} not found (use --skip-missing to leave such poses out)",
+            )
 
 
 def prefetched(frames: Iterable[tuple[DatasetIndex, int]], ahead: int = PREFETCH_FRAMES) -> Iterator[Frame]:
@@ -133,9 +138,17 @@ def prefetched(frames: Iterable[tuple[DatasetIndex, int]], ahead: int = PREFETCH
         pool.shutdown(wait=True, cancel_futures=True)
 
 
-def convert(indexes: list[DatasetIndex], out: str | Path, compress: str | None = None, rate_hz: float | None = None,
-            force: bool = False, progress: bool = True, robot_frame: str | None = None,
-            camera_extrinsics: tuple[np.ndarray, np.ndarray] | None = None, labels: bool = True) -> ConvertSummary:
+def convert(
+    indexes: list[DatasetIndex],
+    out: str | Path,
+    compress: str | None = None,
+    rate_hz: float | None = None,
+    force: bool = False,
+    progress: bool = True,
+    robot_frame: str | None = None,
+    camera_extrinsics: tuple[np.ndarray, np.ndarray] | None = None,
+    labels: bool = True,
+) -> ConvertSummary:
     """Write the records of ``indexes`` (one or more splits, in order) as the bag ``out`` (see module doc).
 
     ``compress``: None (raw ``rgb8``), ``"png"`` or ``"jpeg"``. ``rate_hz``: None for the format's rate.
@@ -157,8 +170,12 @@ def convert(indexes: list[DatasetIndex], out: str | Path, compress: str | None =
     start = time.perf_counter()
     writer = BagWriter(out, force=force)
     loaded = prefetched(frames)
-    with sigterm_as_interrupt(), writer, closing(loaded), tqdm(total=len(frames), unit="frame", desc="convert", disable=not progress,
-                                                               file=sys.stderr) as bar:
+    with (
+        sigterm_as_interrupt(),
+        writer,
+        closing(loaded),
+        tqdm(total=len(frames), unit="frame", desc="convert", disable=not progress, file=sys.stderr) as bar,
+    ):
         writer.add_topic(CAMERA_INFO_TOPIC, messages.CAMERA_INFO)
         writer.add_topic(image_topic, messages.IMAGE if compress is None else messages.COMPRESSED_IMAGE)
         if any(index.has_depth for index in indexes):
@@ -184,40 +201,88 @@ def convert(indexes: list[DatasetIndex], out: str | Path, compress: str | None =
                 writer.write(GROUND_TRUTH_TOPIC, ns, messages.pose_stamped(ns, MAP_FRAME, frame.t, frame.q))
             else:
                 t_base, q_base = geometry.pose_compose(frame.t, frame.q, *geometry.pose_inverse(*camera_extrinsics))
-                writer.write(TF_TOPIC, ns, messages.tf_message([messages.transform_stamped(ns, MAP_FRAME, robot_frame, t_base, q_base)]))
+                writer.write(
+                    TF_TOPIC,
+                    ns,
+                    messages.tf_message([messages.transform_stamped(ns, MAP_FRAME, robot_frame, t_base, q_base)]),
+                )
             del frame
             bar.update(1)
     return ConvertSummary(
-        path=Path(out), frames=len(frames), topics=dict(writer.counts), size_bytes=Path(out).stat().st_size,
-        duration_s=(stamps[-1] - stamps[0]) if stamps else 0.0, wall_s=time.perf_counter() - start,
+        path=Path(out),
+        frames=len(frames),
+        topics=dict(writer.counts),
+        size_bytes=Path(out).stat().st_size,
+        duration_s=(stamps[-1] - stamps[0]) if stamps else 0.0,
+        wall_s=time.perf_counter() - start,
     )
 
 
-def _write_tf_static(writer: BagWriter, ns: int, robot_frame: str, camera_extrinsics: tuple[np.ndarray, np.ndarray] | None) -> None:
+def _write_tf_static(
+    writer: BagWriter, ns: int, robot_frame: str, camera_extrinsics: tuple[np.ndarray, np.ndarray] | None
+) -> None:
     """Declare ``/tf`` and ``/tf_static`` and write the one ``robot_frame -> camera`` static transform at ``ns``."""
     if camera_extrinsics is None:
-        raise UserError("--robot-frame needs --camera-extrinsics X,Y,Z,QW,QX,QY,QZ (the camera's pose in the robot frame)")
+        raise UserError(
+            "--robot-frame needs --camera-extrinsics X,Y,Z,QW,QX,QY,QZ (the camera's pose in the robot frame)"
+        )
     if robot_frame in (MAP_FRAME, CAMERA_FRAME):
         raise UserError(f"--robot-frame must differ from {MAP_FRAME!r} and {CAMERA_FRAME!r}, got {robot_frame!r}")
     writer.add_topic(TF_TOPIC, messages.TF_MESSAGE)
     writer.add_topic(TF_STATIC_TOPIC, messages.TF_MESSAGE, latched=True)
-    writer.write(TF_STATIC_TOPIC, ns, messages.tf_message([messages.transform_stamped(ns, robot_frame, CAMERA_FRAME, *camera_extrinsics)]))
+    writer.write(
+        TF_STATIC_TOPIC,
+        ns,
+        messages.tf_message([messages.transform_stamped(ns, robot_frame, CAMERA_FRAME, *camera_extrinsics)]),
+    )
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("dataset", metavar="DIR", help="dataset folder (DeepLoc layout or a 7-Scenes scene)")
     p.add_argument("out", metavar="OUT.mcap", help="output bag: one MCAP file (ROS 2 Jazzy types)")
     p.add_argument("--format", choices=FORMATS, default=None, help="dataset format (default: detected from the layout)")
-    p.add_argument("--split", choices=("train", "test", "all"), default="test", help="split to convert; 'all' = train then test (default: test)")
-    p.add_argument("--compress", nargs="?", const="png", choices=("png", "jpeg"), default=None,
-                   help="write /camera/image_raw/compressed (PNG, or JPEG quality 95) instead of raw rgb8 /camera/image_raw")
-    p.add_argument("--rate", type=float, default=None, metavar="HZ", help="frame rate of the stamps (default 20 Hz DeepLoc, 30 Hz 7-Scenes)")
-    p.add_argument("--intrinsics", default=None, metavar="FX,FY,CX,CY", help="camera intrinsics at the dataset image size (default: the reader's)")
-    p.add_argument("--robot-frame", metavar="ROBOT", help="write the ground truth as /tf map -> ROBOT plus /tf_static ROBOT -> camera "
-                   "(needs --camera-extrinsics) instead of /ground_truth/pose")
-    p.add_argument("--camera-extrinsics", metavar="X,Y,Z,QW,QX,QY,QZ", help="with --robot-frame: the camera's pose in ROBOT (T_robot,camera)")
+    p.add_argument(
+        "--split",
+        choices=("train", "test", "all"),
+        default="test",
+        help="split to convert; 'all' = train then test (default: test)",
+    )
+    p.add_argument(
+        "--compress",
+        nargs="?",
+        const="png",
+        choices=("png", "jpeg"),
+        default=None,
+        help="write /camera/image_raw/compressed (PNG, or JPEG quality 95) instead of raw rgb8 /camera/image_raw",
+    )
+    p.add_argument(
+        "--rate",
+        type=float,
+        default=None,
+        metavar="HZ",
+        help="frame rate of the stamps (default 20 Hz DeepLoc, 30 Hz 7-Scenes)",
+    )
+    p.add_argument(
+        "--intrinsics",
+        default=None,
+        metavar="FX,FY,CX,CY",
+        help="camera intrinsics at the dataset image size (default: the reader's)",
+    )
+    p.add_argument(
+        "--robot-frame",
+        metavar="ROBOT",
+        help="write the ground truth as /tf map -> ROBOT plus /tf_static ROBOT -> camera "
+        "(needs --camera-extrinsics) instead of /ground_truth/pose",
+    )
+    p.add_argument(
+        "--camera-extrinsics",
+        metavar="X,Y,Z,QW,QX,QY,QZ",
+        help="with --robot-frame: the camera's pose in ROBOT (T_robot,camera)",
+    )
     p.add_argument("--no-labels", action="store_true", help="leave out /camera/semantic")
-    p.add_argument("--skip-missing", action="store_true", help="leave out poses whose image is missing instead of stopping")
+    p.add_argument(
+        "--skip-missing", action="store_true", help="leave out poses whose image is missing instead of stopping"
+    )
     p.add_argument("--force", action="store_true", help="replace OUT.mcap if it exists")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
@@ -247,7 +312,16 @@ def run(args: argparse.Namespace) -> int:
         from vlocnetpp_core.bag.extract import parse_extrinsics
 
         extrinsics = parse_extrinsics(args.camera_extrinsics)
-    summary = convert(indexes, args.out, args.compress, args.rate, args.force, progress=not args.no_progress,
-                      robot_frame=args.robot_frame, camera_extrinsics=extrinsics, labels=not args.no_labels)
+    summary = convert(
+        indexes,
+        args.out,
+        args.compress,
+        args.rate,
+        args.force,
+        progress=not args.no_progress,
+        robot_frame=args.robot_frame,
+        camera_extrinsics=extrinsics,
+        labels=not args.no_labels,
+    )
     print(summary.format())
     return 0

@@ -76,12 +76,19 @@ class ExtractSummary:
     wall_s: float = 0.0
 
     def format(self) -> str:
-        splits = ", ".join(f"{s} {n} frames in {self.sequences[s]} sequence{'s' * (self.sequences[s] != 1)}"
-                           for s, n in self.frames.items() if n)
-        line = (f"wrote {self.out}: {sum(self.frames.values())} of {self.images} images of {self.image_topic} ({splits}), "
-                f"depth on {self.depth_frames}, in {self.wall_s:.1f} s")
+        splits = ", ".join(
+            f"{s} {n} frames in {self.sequences[s]} sequence{'s' * (self.sequences[s] != 1)}"
+            for s, n in self.frames.items()
+            if n
+        )
+        line = (
+            f"wrote {self.out}: {sum(self.frames.values())} of {self.images} images of {self.image_topic} ({splits}), "
+            f"depth on {self.depth_frames}, in {self.wall_s:.1f} s"
+        )
         if self.skipped:
-            line += f"; skipped {sum(self.skipped.values())}: " + ", ".join(f"{k} {v}" for k, v in sorted(self.skipped.items()))
+            line += f"; skipped {sum(self.skipped.values())}: " + ", ".join(
+                f"{k} {v}" for k, v in sorted(self.skipped.items())
+            )
         return "\n".join([line] + [f"note: {n}" for n in self.notes])
 
 
@@ -91,7 +98,9 @@ class ExtractSummary:
 def _decode_depth(msg: Any, topic: str, size: tuple[int, int]) -> np.ndarray | None:
     """``(H, W)`` float32 metres (32FC1) or uint16 millimetres (16UC1); None for a bad or wrongly sized one."""
     if msg.encoding not in preprocess.DEPTH_ENCODINGS:
-        raise UserError(f"{topic}: unsupported depth encoding {msg.encoding!r} (supported: 32FC1 metres, 16UC1 millimetres)")
+        raise UserError(
+            f"{topic}: unsupported depth encoding {msg.encoding!r} (supported: 32FC1 metres, 16UC1 millimetres)"
+        )
     try:
         depth = messages.image_to_array(msg)
     except preprocess.FrameError:
@@ -101,8 +110,15 @@ def _decode_depth(msg: Any, topic: str, size: tuple[int, int]) -> np.ndarray | N
     return depth if depth.dtype == np.uint16 else preprocess.depth_to_metres(depth, msg.encoding)
 
 
-def write_frames(reader: BagReader, src: Sources, plan: Plan, depth_match: np.ndarray, writer: DeepLocWriter,
-                 size: tuple[int, int], progress: bool) -> None:
+def write_frames(
+    reader: BagReader,
+    src: Sources,
+    plan: Plan,
+    depth_match: np.ndarray,
+    writer: DeepLocWriter,
+    size: tuple[int, int],
+    progress: bool,
+) -> None:
     """Second pass: decode and write the planned images and their matched depth (``depth_match[k]``: depth
     ordinal of ``plan.frames[k]`` or -1); undecodable or resized images are skipped into ``plan.skipped``."""
     from tqdm import tqdm
@@ -124,7 +140,9 @@ def write_frames(reader: BagReader, src: Sources, plan: Plan, depth_match: np.nd
                 if k in by_image:
                     msg = messages.deserialize(raw, topics[topic])
                     if messages.stamp_ns(msg) != by_image[k].stamp_ns:  # both passes read the bag in the same order
-                        raise UserError(f"{topic}: message {k} has another stamp on the second read of the bag; is it being written to?")
+                        raise UserError(
+                            f"{topic}: message {k} has another stamp on the second read of the bag; is it being written to?"
+                        )
                     _write_image(msg, topic, by_image[k], writer, size, plan.skipped)
             elif k in by_depth:
                 depth = _decode_depth(messages.deserialize(raw, topics[topic]), topic, size)
@@ -132,7 +150,9 @@ def write_frames(reader: BagReader, src: Sources, plan: Plan, depth_match: np.nd
                     writer.depth(f, depth)
 
 
-def _write_image(msg: Any, topic: str, frame: PlannedFrame, writer: DeepLocWriter, size: tuple[int, int], skipped: Counter) -> None:
+def _write_image(
+    msg: Any, topic: str, frame: PlannedFrame, writer: DeepLocWriter, size: tuple[int, int], skipped: Counter
+) -> None:
     """Decode one camera message to RGB and write it; undecodable or resized images are counted in ``skipped``."""
     try:
         rgb = messages.any_image_to_rgb(msg)
@@ -155,9 +175,11 @@ def _frame_note(chain: PoseChain, scan: Scan, src: Sources, opts: ExtractOptions
     frame = str(scan.first_image.header.frame_id).lstrip("/")
     named = src.tf is not None or bool(getattr(scan.pose, "child_frame_id", ""))
     if named and opts.camera_extrinsics is None and frame and chain.child != frame:
-        notes.append(f"the poses are of frame {chain.child!r} but the images are in {frame!r} and no --camera-extrinsics was "
-                     f"given: the dataset holds the poses of {chain.child!r}, not of the camera "
-                     f"(use --tf {chain.parent} {frame}, or --camera-extrinsics)")
+        notes.append(
+            f"the poses are of frame {chain.child!r} but the images are in {frame!r} and no --camera-extrinsics was "
+            f"given: the dataset holds the poses of {chain.child!r}, not of the camera "
+            f"(use --tf {chain.parent} {frame}, or --camera-extrinsics)"
+        )
 
 
 def check_readback(root: Path, written: list[PlannedFrame]) -> list[str]:
@@ -169,8 +191,10 @@ def check_readback(root: Path, written: list[PlannedFrame]) -> list[str]:
         index = read_deeploc(root, split)
         want = len({f.sequence for f in written if f.split == split})
         if len(index.sequences) != want:
-            notes.append(f"{split}: the DeepLoc reader sees {len(index.sequences)} sequences where {want} were written: it also "
-                         "cuts where consecutive frames are over 5 m or 45 deg apart (a smaller --stride / --min-motion avoids it)")
+            notes.append(
+                f"{split}: the DeepLoc reader sees {len(index.sequences)} sequences where {want} were written: it also "
+                "cuts where consecutive frames are over 5 m or 45 deg apart (a smaller --stride / --min-motion avoids it)"
+            )
     return notes
 
 
@@ -178,16 +202,27 @@ def _provenance(bag: Path, src: Sources, opts: ExtractOptions, K: Intrinsics, pl
     sel = opts.selection
     ext = opts.camera_extrinsics
     return {
-        "bag": str(bag.resolve()), "image_topic": src.image, "camera_info_topic": src.camera_info, "depth_topic": src.depth,
-        "pose_source": src.pose_name, "first_image_stamp_ns": int(first_ns), "intrinsics": K.to_dict(),
+        "bag": str(bag.resolve()),
+        "image_topic": src.image,
+        "camera_info_topic": src.camera_info,
+        "depth_topic": src.depth,
+        "pose_source": src.pose_name,
+        "first_image_stamp_ns": int(first_ns),
+        "intrinsics": K.to_dict(),
         "camera_extrinsics": None if ext is None else [*map(float, ext[0]), *map(float, ext[1])],
-        "max_pose_gap_s": opts.max_pose_gap_s, "depth_tolerance_s": opts.depth_tolerance_s, "max_gap_s": sel.max_gap_s,
-        "stride": sel.stride, "min_motion": [sel.min_motion_m, sel.min_motion_deg], "test_ranges": [list(r) for r in sel.test_ranges],
+        "max_pose_gap_s": opts.max_pose_gap_s,
+        "depth_tolerance_s": opts.depth_tolerance_s,
+        "max_gap_s": sel.max_gap_s,
+        "stride": sel.stride,
+        "min_motion": [sel.min_motion_m, sel.min_motion_deg],
+        "test_ranges": [list(r) for r in sel.test_ranges],
         "skipped": dict(plan.skipped),
     }
 
 
-def extract(bag: str | Path, out: str | Path, opts: ExtractOptions, force: bool = False, progress: bool = True) -> ExtractSummary:
+def extract(
+    bag: str | Path, out: str | Path, opts: ExtractOptions, force: bool = False, progress: bool = True
+) -> ExtractSummary:
     """Write the DeepLoc-layout dataset ``out`` from the bag ``bag`` (module doc); returns what was written."""
     start = time.perf_counter()
     out = Path(out)
@@ -207,9 +242,14 @@ def extract(bag: str | Path, out: str | Path, opts: ExtractOptions, force: bool 
         stamps = np.asarray(scan.image_stamps, dtype=np.int64)
         plan = plan_frames(stamps, *camera_poses(chain, stamps, src, opts), opts.selection)
         if not plan.frames:
-            raise UserError(f"no frames left of the {len(stamps)} images of {src.image} (skipped: "
-                            + ", ".join(f"{k} {v}" for k, v in sorted(plan.skipped.items())) + ")")
-        depth_match = match_nearest(np.array([f.stamp_ns for f in plan.frames]), np.asarray(scan.depth_stamps), opts.depth_tolerance_s)
+            raise UserError(
+                f"no frames left of the {len(stamps)} images of {src.image} (skipped: "
+                + ", ".join(f"{k} {v}" for k, v in sorted(plan.skipped.items()))
+                + ")"
+            )
+        depth_match = match_nearest(
+            np.array([f.stamp_ns for f in plan.frames]), np.asarray(scan.depth_stamps), opts.depth_tolerance_s
+        )
         with sigterm_as_interrupt(), atomic_output_dir(out, force) as tmp:
             writer = DeepLocWriter(tmp)
             try:
@@ -218,15 +258,23 @@ def extract(bag: str | Path, out: str | Path, opts: ExtractOptions, force: bool 
             finally:
                 writer.close()
             if not written:
-                raise UserError(f"{src.image}: none of the {len(plan.frames)} selected images could be decoded "
-                                f"({', '.join(f'{k} {v}' for k, v in sorted(plan.skipped.items()))})")
+                raise UserError(
+                    f"{src.image}: none of the {len(plan.frames)} selected images could be decoded "
+                    f"({', '.join(f'{k} {v}' for k, v in sorted(plan.skipped.items()))})"
+                )
             notes += check_readback(tmp, written)
             depth_frames = len(set(writer.depths) & writer.images)
     splits = ("train", "test")
     return ExtractSummary(
-        out=out, image_topic=src.image, images=len(stamps), frames={s: sum(f.split == s for f in written) for s in splits},
-        sequences={s: len({f.sequence for f in written if f.split == s}) for s in splits}, depth_frames=depth_frames,
-        skipped=plan.skipped, notes=notes, wall_s=time.perf_counter() - start,
+        out=out,
+        image_topic=src.image,
+        images=len(stamps),
+        frames={s: sum(f.split == s for f in written) for s in splits},
+        sequences={s: len({f.sequence for f in written if f.split == s}) for s in splits},
+        depth_frames=depth_frames,
+        skipped=plan.skipped,
+        notes=notes,
+        wall_s=time.perf_counter() - start,
     )
 
 
@@ -272,27 +320,79 @@ def parse_min_motion(text: str | None) -> tuple[float, float | None]:
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("bag", metavar="BAG", help="input ROS 2 bag: .mcap or .db3 file, or a rosbag2 folder")
-    p.add_argument("out", metavar="OUT", help="output dataset folder (DeepLoc layout: data-info / train --data read it)")
-    p.add_argument("--image-topic", metavar="TOPIC", help="camera topic, Image or CompressedImage (default /camera/image_raw, else .../compressed, else the only one)")
-    p.add_argument("--camera-info-topic", metavar="TOPIC", help="CameraInfo topic (default <image namespace>/camera_info, else /camera/camera_info)")
-    p.add_argument("--intrinsics", metavar="FX,FY,CX,CY", help="intrinsics at the image size instead of a camera info topic")
-    p.add_argument("--depth-topic", metavar="TOPIC", help=f"registered depth, Image 32FC1 metres or 16UC1 mm (default {DEPTH_TOPIC} when present)")
+    p.add_argument(
+        "out", metavar="OUT", help="output dataset folder (DeepLoc layout: data-info / train --data read it)"
+    )
+    p.add_argument(
+        "--image-topic",
+        metavar="TOPIC",
+        help="camera topic, Image or CompressedImage (default /camera/image_raw, else .../compressed, else the only one)",
+    )
+    p.add_argument(
+        "--camera-info-topic",
+        metavar="TOPIC",
+        help="CameraInfo topic (default <image namespace>/camera_info, else /camera/camera_info)",
+    )
+    p.add_argument(
+        "--intrinsics", metavar="FX,FY,CX,CY", help="intrinsics at the image size instead of a camera info topic"
+    )
+    p.add_argument(
+        "--depth-topic",
+        metavar="TOPIC",
+        help=f"registered depth, Image 32FC1 metres or 16UC1 mm (default {DEPTH_TOPIC} when present)",
+    )
     p.add_argument("--no-depth", action="store_true", help="write no depth even if the bag has the default depth topic")
     src = p.add_mutually_exclusive_group()
-    src.add_argument("--pose-topic", metavar="TOPIC", help=f"Odometry, PoseStamped or PoseWithCovarianceStamped topic (default {GROUND_TRUTH_TOPIC})")
-    src.add_argument("--tf", nargs=2, metavar=("PARENT", "CHILD"), help="compose /tf and /tf_static from PARENT (e.g. map) to CHILD")
-    p.add_argument("--camera-extrinsics", metavar="X,Y,Z,QW,QX,QY,QZ",
-                   help="pose of the camera optical frame in CHILD (or the pose topic's robot frame): T_child,camera (default identity)")
-    p.add_argument("--max-pose-gap", type=float, default=DEFAULT_MAX_POSE_GAP_S, metavar="S",
-                   help=f"skip images between pose samples more than S seconds apart (default {DEFAULT_MAX_POSE_GAP_S:g})")
-    p.add_argument("--depth-tolerance", type=float, default=DEFAULT_DEPTH_TOLERANCE_S, metavar="S",
-                   help=f"use the depth image nearest in stamp if within S seconds (default {DEFAULT_DEPTH_TOLERANCE_S:g})")
-    p.add_argument("--max-gap-s", type=float, default=DEFAULT_MAX_GAP_S, metavar="S",
-                   help=f"a gap between usable images longer than S seconds starts a new sequence (default {DEFAULT_MAX_GAP_S:g})")
-    p.add_argument("--stride", type=int, default=1, metavar="N", help="keep every Nth usable image of a sequence (default 1)")
-    p.add_argument("--min-motion", metavar="M[,DEG]", help="keep an image only when it moved M metres (or DEG degrees) from the last kept one")
-    p.add_argument("--test-ranges", metavar="A:B[,C:D...]", help="seconds after the first image that go to the test split (default: all train)")
-    p.add_argument("--force", action="store_true", help="replace OUT if it exists (only once the new dataset is complete)")
+    src.add_argument(
+        "--pose-topic",
+        metavar="TOPIC",
+        help=f"Odometry, PoseStamped or PoseWithCovarianceStamped topic (default {GROUND_TRUTH_TOPIC})",
+    )
+    src.add_argument(
+        "--tf", nargs=2, metavar=("PARENT", "CHILD"), help="compose /tf and /tf_static from PARENT (e.g. map) to CHILD"
+    )
+    p.add_argument(
+        "--camera-extrinsics",
+        metavar="X,Y,Z,QW,QX,QY,QZ",
+        help="pose of the camera optical frame in CHILD (or the pose topic's robot frame): T_child,camera (default identity)",
+    )
+    p.add_argument(
+        "--max-pose-gap",
+        type=float,
+        default=DEFAULT_MAX_POSE_GAP_S,
+        metavar="S",
+        help=f"skip images between pose samples more than S seconds apart (default {DEFAULT_MAX_POSE_GAP_S:g})",
+    )
+    p.add_argument(
+        "--depth-tolerance",
+        type=float,
+        default=DEFAULT_DEPTH_TOLERANCE_S,
+        metavar="S",
+        help=f"use the depth image nearest in stamp if within S seconds (default {DEFAULT_DEPTH_TOLERANCE_S:g})",
+    )
+    p.add_argument(
+        "--max-gap-s",
+        type=float,
+        default=DEFAULT_MAX_GAP_S,
+        metavar="S",
+        help=f"a gap between usable images longer than S seconds starts a new sequence (default {DEFAULT_MAX_GAP_S:g})",
+    )
+    p.add_argument(
+        "--stride", type=int, default=1, metavar="N", help="keep every Nth usable image of a sequence (default 1)"
+    )
+    p.add_argument(
+        "--min-motion",
+        metavar="M[,DEG]",
+        help="keep an image only when it moved M metres (or DEG degrees) from the last kept one",
+    )
+    p.add_argument(
+        "--test-ranges",
+        metavar="A:B[,C:D...]",
+        help="seconds after the first image that go to the test split (default: all train)",
+    )
+    p.add_argument(
+        "--force", action="store_true", help="replace OUT if it exists (only once the new dataset is complete)"
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -307,11 +407,17 @@ def options_from_args(args: argparse.Namespace) -> ExtractOptions:
     metres, degrees = parse_min_motion(args.min_motion)
     selection = Selection(parse_ranges(args.test_ranges), args.max_gap_s, args.stride, metres, degrees)
     return ExtractOptions(
-        image_topic=args.image_topic, camera_info_topic=args.camera_info_topic, intrinsics=args.intrinsics,
-        depth_topic=args.depth_topic, no_depth=args.no_depth, pose_topic=args.pose_topic,
+        image_topic=args.image_topic,
+        camera_info_topic=args.camera_info_topic,
+        intrinsics=args.intrinsics,
+        depth_topic=args.depth_topic,
+        no_depth=args.no_depth,
+        pose_topic=args.pose_topic,
         tf=tuple(args.tf) if args.tf else None,
         camera_extrinsics=parse_extrinsics(args.camera_extrinsics) if args.camera_extrinsics else None,
-        max_pose_gap_s=args.max_pose_gap, depth_tolerance_s=args.depth_tolerance, selection=selection,
+        max_pose_gap_s=args.max_pose_gap,
+        depth_tolerance_s=args.depth_tolerance,
+        selection=selection,
     )
 
 

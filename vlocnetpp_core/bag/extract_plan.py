@@ -131,7 +131,9 @@ def plan_frames(stamps_ns: np.ndarray, t: np.ndarray, q: np.ndarray, reasons: li
         while runs and max(len(r) for r in runs) >= stride:
             stride *= 10
         for k, run in enumerate(runs):
-            plan.frames += [PlannedFrame(i, int(stamps[i]), t[i], q[i], split, k, k * stride + j + 1) for j, i in enumerate(run)]
+            plan.frames += [
+                PlannedFrame(i, int(stamps[i]), t[i], q[i], split, k, k * stride + j + 1) for j, i in enumerate(run)
+            ]
     plan.frames.sort(key=lambda f: f.stamp_ns)
     return plan
 

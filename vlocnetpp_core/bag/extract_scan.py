@@ -100,8 +100,10 @@ def _default_camera_info(topics: dict[str, str], image: str) -> str:
             return t
     if len(infos) == 1:
         return infos[0]
-    raise UserError(f"no camera info for {image}: pass --camera-info-topic (CameraInfo topics: {', '.join(infos) or 'none'}) "
-                    "or --intrinsics fx,fy,cx,cy")
+    raise UserError(
+        f"no camera info for {image}: pass --camera-info-topic (CameraInfo topics: {', '.join(infos) or 'none'}) "
+        "or --intrinsics fx,fy,cx,cy"
+    )
 
 
 def resolve_sources(topics: dict[str, str], opts: ExtractOptions, path: Path) -> Sources:
@@ -136,8 +138,10 @@ def resolve_sources(topics: dict[str, str], opts: ExtractOptions, path: Path) ->
         pose_topic = GROUND_TRUTH_TOPIC
     else:
         poses = [t for t, ty in topics.items() if ty in POSE_TYPES]
-        raise UserError(f"no pose source: pass --pose-topic TOPIC (pose topics in the bag: {', '.join(poses) or 'none'}) "
-                        f"or --tf PARENT CHILD ({TF_TOPIC} {'present' if TF_TOPIC in topics else 'absent'})")
+        raise UserError(
+            f"no pose source: pass --pose-topic TOPIC (pose topics in the bag: {', '.join(poses) or 'none'}) "
+            f"or --tf PARENT CHILD ({TF_TOPIC} {'present' if TF_TOPIC in topics else 'absent'})"
+        )
     return Sources(image, info, depth, pose_topic, opts.tf)
 
 
@@ -161,7 +165,12 @@ def scan_bag(reader: BagReader, src: Sources, progress: bool) -> Scan:
                 scan.depth_stamps.append(messages.stamp_ns(msg))
                 scan.first_depth = msg if scan.first_depth is None else scan.first_depth
             elif topic == src.camera_info:
-                key = (tuple(float(v) for v in msg.k), int(msg.width), int(msg.height), bool(np.any(np.asarray(msg.d) != 0)))
+                key = (
+                    tuple(float(v) for v in msg.k),
+                    int(msg.width),
+                    int(msg.height),
+                    bool(np.any(np.asarray(msg.d) != 0)),
+                )
                 scan.infos.setdefault(key, len(scan.infos))
             elif src.tf is not None:
                 scan.pose.add(msg, static=topic == TF_STATIC_TOPIC)
@@ -177,8 +186,10 @@ def image_size(msg: Any, topic: str) -> tuple[int, int]:
         if msg.__msgtype__ == messages.COMPRESSED_IMAGE:
             return preprocess.check_compressed(msg.data)
         if msg.encoding not in preprocess.IMAGE_ENCODINGS:
-            raise UserError(f"{topic}: unsupported image encoding {msg.encoding!r} "
-                            f"(supported: {', '.join(preprocess.IMAGE_ENCODINGS)}, or a PNG/JPEG CompressedImage)")
+            raise UserError(
+                f"{topic}: unsupported image encoding {msg.encoding!r} "
+                f"(supported: {', '.join(preprocess.IMAGE_ENCODINGS)}, or a PNG/JPEG CompressedImage)"
+            )
         return int(msg.width), int(msg.height)
     except preprocess.FrameError as err:
         raise UserError(f"{topic}: {err} (format {getattr(msg, 'format', '')!r})") from err
@@ -187,13 +198,19 @@ def image_size(msg: Any, topic: str) -> tuple[int, int]:
 def check_depth(msg: Any, topic: str, size: tuple[int, int]) -> None:
     """The first depth image: a supported encoding and the camera image's size (registered depth)."""
     if msg.encoding not in preprocess.DEPTH_ENCODINGS:
-        raise UserError(f"{topic}: unsupported depth encoding {msg.encoding!r} (supported: 32FC1 metres, 16UC1 millimetres)")
+        raise UserError(
+            f"{topic}: unsupported depth encoding {msg.encoding!r} (supported: 32FC1 metres, 16UC1 millimetres)"
+        )
     if (int(msg.width), int(msg.height)) != size:
-        raise UserError(f"{topic}: depth images are {msg.width}x{msg.height}, the camera images {size[0]}x{size[1]}; "
-                        "the depth must be registered to the colour camera (e.g. aligned_depth_to_color), or pass --no-depth")
+        raise UserError(
+            f"{topic}: depth images are {msg.width}x{msg.height}, the camera images {size[0]}x{size[1]}; "
+            "the depth must be registered to the colour camera (e.g. aligned_depth_to_color), or pass --no-depth"
+        )
 
 
-def camera_intrinsics(scan: Scan, src: Sources, opts: ExtractOptions, size: tuple[int, int], notes: list[str]) -> Intrinsics:
+def camera_intrinsics(
+    scan: Scan, src: Sources, opts: ExtractOptions, size: tuple[int, int], notes: list[str]
+) -> Intrinsics:
     """``--intrinsics`` at the image size, else the (first) camera info, which must be of the image size."""
     if opts.intrinsics is not None:
         try:
@@ -204,24 +221,36 @@ def camera_intrinsics(scan: Scan, src: Sources, opts: ExtractOptions, size: tupl
         raise UserError(f"{src.camera_info}: the topic has no messages (or pass --intrinsics fx,fy,cx,cy)")
     k, width, height, distorted = next(iter(scan.infos))
     if (width, height) != size:
-        raise UserError(f"{src.camera_info}: camera info is for {width}x{height} images but {src.image} has {size[0]}x{size[1]}")
+        raise UserError(
+            f"{src.camera_info}: camera info is for {width}x{height} images but {src.image} has {size[0]}x{size[1]}"
+        )
     if k[0] <= 0 or k[4] <= 0:
-        raise UserError(f"{src.camera_info}: the camera is not calibrated (K = {list(k)}); pass --intrinsics fx,fy,cx,cy")
+        raise UserError(
+            f"{src.camera_info}: the camera is not calibrated (K = {list(k)}); pass --intrinsics fx,fy,cx,cy"
+        )
     if len(scan.infos) > 1:
-        notes.append(f"{src.camera_info} changes during the bag ({len(scan.infos)} different messages); the first one is used")
+        notes.append(
+            f"{src.camera_info} changes during the bag ({len(scan.infos)} different messages); the first one is used"
+        )
     if distorted:
-        notes.append(f"{src.camera_info} has distortion coefficients: the images are written as they are (not rectified); "
-                     "extract a rectified topic (image_rect) for exact geometry")
+        notes.append(
+            f"{src.camera_info} has distortion coefficients: the images are written as they are (not rectified); "
+            "extract a rectified topic (image_rect) for exact geometry"
+        )
     return Intrinsics.from_matrix(np.asarray(k), width, height)
 
 
-def camera_poses(chain: PoseChain, stamps: np.ndarray, src: Sources, opts: ExtractOptions) -> tuple[np.ndarray, np.ndarray, list]:
+def camera_poses(
+    chain: PoseChain, stamps: np.ndarray, src: Sources, opts: ExtractOptions
+) -> tuple[np.ndarray, np.ndarray, list]:
     """``T_wc`` ``(t (N, 3), q (N, 4))`` at the image stamps and the pose reasons; a ``UserError`` when no image has one."""
     t, q, reasons = chain.camera_at(stamps, opts.max_pose_gap_s, opts.camera_extrinsics)
     if all(r is not None for r in reasons):
         span = chain.dynamic_span_ns()
         poses = "" if span is None else f", poses {span[0] / 1e9:.3f}..{span[1] / 1e9:.3f} s"
         why = Counter(reasons).most_common(1)[0][0]
-        raise UserError(f"no image of {src.image} has a pose from {src.pose_name} (images {stamps.min() / 1e9:.3f}..{stamps.max() / 1e9:.3f} s"
-                        f"{poses}; {why})")
+        raise UserError(
+            f"no image of {src.image} has a pose from {src.pose_name} (images {stamps.min() / 1e9:.3f}..{stamps.max() / 1e9:.3f} s"
+            f"{poses}; {why})"
+        )
     return t, q, reasons

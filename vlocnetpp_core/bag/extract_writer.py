@@ -82,7 +82,10 @@ class DeepLocWriter:
             self.depths.pop(key).unlink(missing_ok=True)
         for split in sorted({f.split for f in written}):
             rows = [f for f in written if f.split == split]
-            lines = [f"# extracted by vlocnetpp extract from {provenance.get('bag', '?')}", "ImageName x y z qw qx qy qz"]
+            lines = [
+                f"# extracted by vlocnetpp extract from {provenance.get('bag', '?')}",
+                "ImageName x y z qw qx qy qz",
+            ]
             lines += [f"{f.name} " + " ".join(f"{v:.9f}" for v in (*f.t, *f.q)) for f in rows]
             (self.root / "DeepLoc" / split / "poses.txt").write_text("\n".join(lines) + "\n")
             (self.root / "DeepLoc" / split / "stamps.txt").write_text("".join(f"{f.name} {f.stamp_ns}\n" for f in rows))

@@ -11,8 +11,9 @@ from vlocnetpp_core.bag.topics import CAMERA_INFO_TOPIC, IMAGE_TOPICS
 from vlocnetpp_core.errors import DataError
 
 
-def describe_frames(reader: BagReader, where: dict[int, tuple[int, int]],
-                    refiner=None) -> tuple[list[np.ndarray], list[tuple[np.ndarray, np.ndarray]] | None]:
+def describe_frames(
+    reader: BagReader, where: dict[int, tuple[int, int]], refiner=None
+) -> tuple[list[np.ndarray], list[tuple[np.ndarray, np.ndarray]] | None]:
     """Pass 3: per sequence, the retrieval descriptors ``(N_k, D)`` of the camera images of the frames in ``where``
     (stamp -> (sequence, position)) and, with ``refiner`` (a :class:`~vlocnetpp_core.mapping.refiner.Refiner`), the
     structure-based baseline's poses ``(t (N_k, 3), q (N_k, 4))`` of those images (``Refiner.locate_image``; the
@@ -23,13 +24,17 @@ def describe_frames(reader: BagReader, where: dict[int, tuple[int, int]],
 
     image_topic = next((t for t in IMAGE_TOPICS if t in reader.topics), None)
     if image_topic is None:
-        raise DataError(reader.path, f"no camera image topic ({' or '.join(IMAGE_TOPICS)}) to describe for the baselines")
+        raise DataError(
+            reader.path, f"no camera image topic ({' or '.join(IMAGE_TOPICS)}) to describe for the baselines"
+        )
     lengths = np.bincount([k for k, _ in where.values()])
     out: list[np.ndarray | None] = [None] * len(lengths)
     seen = [np.zeros(n, bool) for n in lengths]
     located = None if refiner is None else [(np.zeros((n, 3)), np.zeros((n, 4))) for n in lengths]
     intrinsics = None
-    for group in groups_by_log_time(reader.messages([image_topic] + ([CAMERA_INFO_TOPIC] if refiner is not None else []))):
+    for group in groups_by_log_time(
+        reader.messages([image_topic] + ([CAMERA_INFO_TOPIC] if refiner is not None else []))
+    ):
         for topic, _, msg in group:
             if topic == CAMERA_INFO_TOPIC:
                 intrinsics = messages.intrinsics_from_camera_info(msg)
@@ -45,11 +50,16 @@ def describe_frames(reader: BagReader, where: dict[int, tuple[int, int]],
             out[k][position], seen[k][position] = d, True
             if located is not None:
                 if intrinsics is None:
-                    raise DataError(reader.path, f"--map: no {CAMERA_INFO_TOPIC} up to the image at stamp {ns / 1e9:.9f} s "
-                                                 "(the structure-based baseline needs the camera's intrinsics)")
+                    raise DataError(
+                        reader.path,
+                        f"--map: no {CAMERA_INFO_TOPIC} up to the image at stamp {ns / 1e9:.9f} s "
+                        "(the structure-based baseline needs the camera's intrinsics)",
+                    )
                 t, q, _ = refiner.locate_image(rgb, intrinsics, d)
                 located[k][0][position], located[k][1][position] = t, q
     for k, ok in enumerate(seen):
         if not ok.all():
-            raise DataError(reader.path, f"{image_topic} has no image for {int((~ok).sum())} scored frames of sequence {k}")
+            raise DataError(
+                reader.path, f"{image_topic} has no image for {int((~ok).sum())} scored frames of sequence {k}"
+            )
     return out, located

@@ -58,7 +58,9 @@ def stamp_ns(msg: Any) -> int:
 def header(ns: int, frame_id: str) -> Any:
     """``std_msgs/Header`` at ``ns`` nanoseconds."""
     sec, nanosec = divmod(int(ns), 1_000_000_000)
-    return _T["std_msgs/msg/Header"](stamp=_T["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec), frame_id=frame_id)
+    return _T["std_msgs/msg/Header"](
+        stamp=_T["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec), frame_id=frame_id
+    )
 
 
 # --------------------------------------------------------------------------- images
@@ -75,8 +77,13 @@ def image(ns: int, frame_id: str, array: np.ndarray, encoding: str) -> Any:
         raise ValueError(f"array of shape {a.shape} does not fit encoding {encoding} ({channels} channels)")
     h, w = a.shape[:2]
     return _T[IMAGE](
-        header=header(ns, frame_id), height=h, width=w, encoding=encoding, is_bigendian=0,
-        step=w * channels * dtype.itemsize, data=a.reshape(-1).view(np.uint8),
+        header=header(ns, frame_id),
+        height=h,
+        width=w,
+        encoding=encoding,
+        is_bigendian=0,
+        step=w * channels * dtype.itemsize,
+        data=a.reshape(-1).view(np.uint8),
     )
 
 
@@ -104,7 +111,9 @@ def compressed_image(ns: int, frame_id: str, rgb: np.ndarray, fmt: str = "png", 
     ok, buf = cv2.imencode(".png" if fmt == "png" else ".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), params)
     if not ok:
         raise ValueError(f"cv2 could not encode a {rgb.shape} image as {fmt}")
-    return _T[COMPRESSED_IMAGE](header=header(ns, frame_id), format=f"rgb8; {fmt} compressed bgr8", data=buf.reshape(-1))
+    return _T[COMPRESSED_IMAGE](
+        header=header(ns, frame_id), format=f"rgb8; {fmt} compressed bgr8", data=buf.reshape(-1)
+    )
 
 
 def compressed_to_rgb(msg: Any) -> np.ndarray:
@@ -126,8 +135,16 @@ def camera_info(ns: int, frame_id: str, K: Intrinsics) -> Any:
     p = np.zeros((3, 4))
     p[:, :3] = k
     return _T[CAMERA_INFO](
-        header=header(ns, frame_id), height=K.height, width=K.width, distortion_model="plumb_bob",
-        d=np.zeros(5), k=k.reshape(-1), r=np.eye(3).reshape(-1), p=p.reshape(-1), binning_x=0, binning_y=0,
+        header=header(ns, frame_id),
+        height=K.height,
+        width=K.width,
+        distortion_model="plumb_bob",
+        d=np.zeros(5),
+        k=k.reshape(-1),
+        r=np.eye(3).reshape(-1),
+        p=p.reshape(-1),
+        binning_x=0,
+        binning_y=0,
         roi=_T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False),
     )
 
@@ -154,10 +171,16 @@ def pose_stamped(ns: int, frame_id: str, t: np.ndarray, q_wxyz: np.ndarray) -> A
     return _T[POSE_STAMPED](header=header(ns, frame_id), pose=_pose(t, q_wxyz))
 
 
-def pose_with_covariance_stamped(ns: int, frame_id: str, t: np.ndarray, q_wxyz: np.ndarray, covariance: np.ndarray) -> Any:
+def pose_with_covariance_stamped(
+    ns: int, frame_id: str, t: np.ndarray, q_wxyz: np.ndarray, covariance: np.ndarray
+) -> Any:
     """``geometry_msgs/PoseWithCovarianceStamped``: :func:`pose_stamped` plus a 6x6 covariance (ROS order, row-major)."""
-    return _T[POSE_WITH_COVARIANCE_STAMPED](header=header(ns, frame_id), pose=_T["geometry_msgs/msg/PoseWithCovariance"](
-        pose=_pose(t, q_wxyz), covariance=np.asarray(covariance, np.float64).reshape(36)))
+    return _T[POSE_WITH_COVARIANCE_STAMPED](
+        header=header(ns, frame_id),
+        pose=_T["geometry_msgs/msg/PoseWithCovariance"](
+            pose=_pose(t, q_wxyz), covariance=np.asarray(covariance, np.float64).reshape(36)
+        ),
+    )
 
 
 def pose_from_msg(pose: Any) -> tuple[np.ndarray, np.ndarray]:
@@ -179,7 +202,8 @@ def transform_stamped(ns: int, parent: str, child: str, t: np.ndarray, q_wxyz: n
     t = np.asarray(t, dtype=np.float64)
     x, y, z, w = (float(v) for v in quat_to_ros(np.asarray(q_wxyz, dtype=np.float64)))
     return _T["geometry_msgs/msg/TransformStamped"](
-        header=header(ns, parent), child_frame_id=child,
+        header=header(ns, parent),
+        child_frame_id=child,
         transform=_T["geometry_msgs/msg/Transform"](
             translation=_T["geometry_msgs/msg/Vector3"](x=float(t[0]), y=float(t[1]), z=float(t[2])),
             rotation=_T["geometry_msgs/msg/Quaternion"](x=x, y=y, z=z, w=w),
@@ -200,18 +224,31 @@ def transform_from_msg(transform: Any) -> tuple[np.ndarray, np.ndarray]:
     return np.array([v.x, v.y, v.z], dtype=np.float64), (-q if q[0] < 0 else q)
 
 
-def odometry(ns: int, frame_id: str, child_frame_id: str, t: np.ndarray, q_wxyz: np.ndarray,
-             linear: np.ndarray, angular: np.ndarray, pose_covariance: np.ndarray, twist_covariance: np.ndarray) -> Any:
+def odometry(
+    ns: int,
+    frame_id: str,
+    child_frame_id: str,
+    t: np.ndarray,
+    q_wxyz: np.ndarray,
+    linear: np.ndarray,
+    angular: np.ndarray,
+    pose_covariance: np.ndarray,
+    twist_covariance: np.ndarray,
+) -> Any:
     """``nav_msgs/Odometry``: pose ``T_odom,camera``, twist in the child (camera) frame, 6x6 covariances."""
     lin, ang = np.asarray(linear, dtype=np.float64), np.asarray(angular, dtype=np.float64)
     vec = _T["geometry_msgs/msg/Vector3"]
     return _T[ODOMETRY](
         header=header(ns, frame_id),
         child_frame_id=child_frame_id,
-        pose=_T["geometry_msgs/msg/PoseWithCovariance"](pose=_pose(t, q_wxyz), covariance=np.asarray(pose_covariance, np.float64).reshape(36)),
+        pose=_T["geometry_msgs/msg/PoseWithCovariance"](
+            pose=_pose(t, q_wxyz), covariance=np.asarray(pose_covariance, np.float64).reshape(36)
+        ),
         twist=_T["geometry_msgs/msg/TwistWithCovariance"](
-            twist=_T["geometry_msgs/msg/Twist"](linear=vec(x=float(lin[0]), y=float(lin[1]), z=float(lin[2])),
-                                                angular=vec(x=float(ang[0]), y=float(ang[1]), z=float(ang[2]))),
+            twist=_T["geometry_msgs/msg/Twist"](
+                linear=vec(x=float(lin[0]), y=float(lin[1]), z=float(lin[2])),
+                angular=vec(x=float(ang[0]), y=float(ang[1]), z=float(ang[2])),
+            ),
             covariance=np.asarray(twist_covariance, np.float64).reshape(36),
         ),
     )

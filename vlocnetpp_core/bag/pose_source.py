@@ -55,11 +55,19 @@ class PoseTrack:
         s = s[order]
         last = np.append(s[1:] != s[:-1], True)  # the last of each run of equal stamps
         keep = order[last]
-        return cls(name, s[last], np.asarray(t, np.float64)[keep], geometry.quat_normalize(np.asarray(q, np.float64)[keep]))
+        return cls(
+            name, s[last], np.asarray(t, np.float64)[keep], geometry.quat_normalize(np.asarray(q, np.float64)[keep])
+        )
 
     @classmethod
     def constant(cls, name: str, t: np.ndarray, q: np.ndarray) -> PoseTrack:
-        return cls(name, np.zeros(1, np.int64), np.asarray(t, np.float64)[None], geometry.quat_normalize(np.asarray(q, np.float64))[None], True)
+        return cls(
+            name,
+            np.zeros(1, np.int64),
+            np.asarray(t, np.float64)[None],
+            geometry.quat_normalize(np.asarray(q, np.float64))[None],
+            True,
+        )
 
     def at(self, stamps_ns: np.ndarray, max_gap_s: float) -> tuple[np.ndarray, np.ndarray, list[str | None]]:
         """``(t (M, 3), q (M, 4), reasons)`` at ``stamps_ns (M,)``; ``reasons[i]`` is None where usable (else
@@ -127,8 +135,9 @@ class PoseChain:
         t[bad], q[bad] = np.nan, np.nan
         return t, q, reasons
 
-    def camera_at(self, stamps_ns: np.ndarray, max_gap_s: float, extrinsics: tuple[np.ndarray, np.ndarray] | None
-                  ) -> tuple[np.ndarray, np.ndarray, list[str | None]]:
+    def camera_at(
+        self, stamps_ns: np.ndarray, max_gap_s: float, extrinsics: tuple[np.ndarray, np.ndarray] | None
+    ) -> tuple[np.ndarray, np.ndarray, list[str | None]]:
         """:meth:`at`, then (where usable) the fixed ``extrinsics = (t, q)`` ``T_child,camera`` composed on the
         right: the camera's pose ``T_parent,camera`` when the chain ends at the robot's frame."""
         t, q, reasons = self.at(stamps_ns, max_gap_s)
@@ -205,7 +214,9 @@ class TfCollector:
         edges = [((p, c), PoseTrack.constant(f"{p}->{c} (static)", *v)) for (p, c), v in self.static.items()]
         for (p, c), (stamps, values) in self.samples.items():
             v = np.frombuffer(values, dtype=np.float64).reshape(-1, 7)
-            edges.append(((p, c), PoseTrack.from_samples(f"{p}->{c}", np.frombuffer(stamps, dtype=np.int64), v[:, :3], v[:, 3:])))
+            edges.append(
+                ((p, c), PoseTrack.from_samples(f"{p}->{c}", np.frombuffer(stamps, dtype=np.int64), v[:, :3], v[:, 3:]))
+            )
         for (parent, child), track in edges:
             if child in out:
                 other = out[child][0]
@@ -228,7 +239,9 @@ class TfCollector:
         up_p, up_c = _ancestors(tree, parent), _ancestors(tree, child)
         common = next((f for f in up_p if f in set(up_c)), None)
         if common is None:
-            raise UserError(f"--tf: frames {parent!r} and {child!r} are not connected in the TF tree (roots {up_p[-1]!r} and {up_c[-1]!r})")
+            raise UserError(
+                f"--tf: frames {parent!r} and {child!r} are not connected in the TF tree (roots {up_p[-1]!r} and {up_c[-1]!r})"
+            )
         edges = [(tree[f][1], True) for f in up_p[: up_p.index(common)]]
         edges += [(tree[f][1], False) for f in reversed(up_c[: up_c.index(common)])]
         return PoseChain(parent, child, edges)

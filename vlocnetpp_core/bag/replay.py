@@ -65,10 +65,17 @@ from vlocnetpp_core.interrupts import sigterm_as_interrupt
 from vlocnetpp_core.outputs import refuse_existing
 from vlocnetpp_core.programs import program_command
 
-OUTPUT_TYPES = {POSE_TOPIC: messages.POSE_STAMPED, POSE_WITH_COVARIANCE_TOPIC: messages.POSE_WITH_COVARIANCE_STAMPED,
-                ODOMETRY_TOPIC: messages.ODOMETRY, SEGMENTATION_TOPIC: messages.IMAGE}
+OUTPUT_TYPES = {
+    POSE_TOPIC: messages.POSE_STAMPED,
+    POSE_WITH_COVARIANCE_TOPIC: messages.POSE_WITH_COVARIANCE_STAMPED,
+    ODOMETRY_TOPIC: messages.ODOMETRY,
+    SEGMENTATION_TOPIC: messages.IMAGE,
+}
 REFINEMENT_TYPES = {NETWORK_POSE_TOPIC: messages.POSE_STAMPED}  # with a map: the network's own pose
-ALL_OUTPUT_TYPES = {**OUTPUT_TYPES, **REFINEMENT_TYPES}  # every /vlocnet/* output: what a replay replaces in its input bag
+ALL_OUTPUT_TYPES = {
+    **OUTPUT_TYPES,
+    **REFINEMENT_TYPES,
+}  # every /vlocnet/* output: what a replay replaces in its input bag
 
 
 def output_types(segmentation: bool = True, network_pose: bool = False) -> dict[str, str]:
@@ -119,17 +126,24 @@ class ReplaySummary:
 
 def choose_image_topic(topics: dict[str, str], wanted: str | None, path: Path) -> str:
     """``wanted``, else ``/camera/image_raw``, else ``/camera/image_raw/compressed``, else the only image topic."""
-    images = [t for t, ty in topics.items() if ty in (messages.IMAGE, messages.COMPRESSED_IMAGE) and t not in ALL_OUTPUT_TYPES]
+    images = [
+        t for t, ty in topics.items() if ty in (messages.IMAGE, messages.COMPRESSED_IMAGE) and t not in ALL_OUTPUT_TYPES
+    ]
     if wanted is not None:
         if topics.get(wanted) not in (messages.IMAGE, messages.COMPRESSED_IMAGE):
-            raise DataError(path, f"--image-topic {wanted}: no Image or CompressedImage topic of that name (image topics: {', '.join(images) or 'none'})")
+            raise DataError(
+                path,
+                f"--image-topic {wanted}: no Image or CompressedImage topic of that name (image topics: {', '.join(images) or 'none'})",
+            )
         return wanted
     for t in (IMAGE_TOPIC, COMPRESSED_TOPIC):
         if t in topics:
             return t
     candidates = [t for t in images if t not in (DEPTH_TOPIC, SEMANTIC_TOPIC)]
     if len(candidates) != 1:
-        raise DataError(path, f"cannot tell the camera topic; pass --image-topic (image topics: {', '.join(images) or 'none'})")
+        raise DataError(
+            path, f"cannot tell the camera topic; pass --image-topic (image topics: {', '.join(images) or 'none'})"
+        )
     return candidates[0]
 
 
@@ -152,9 +166,24 @@ def output_messages(result, image_msg: Any, network_pose: bool = False) -> list[
     ns, camera = messages.stamp_ns(image_msg), image_msg.header.frame_id
     out = [
         (POSE_TOPIC, messages.pose_stamped(ns, MAP_FRAME, result.t, result.q)),
-        (POSE_WITH_COVARIANCE_TOPIC, messages.pose_with_covariance_stamped(ns, MAP_FRAME, result.t, result.q, result.pose_covariance)),
-        (ODOMETRY_TOPIC, messages.odometry(ns, ODOM_FRAME, camera, result.odom_t, result.odom_q, result.linear, result.angular,
-                                           result.odom_covariance, result.twist_covariance)),
+        (
+            POSE_WITH_COVARIANCE_TOPIC,
+            messages.pose_with_covariance_stamped(ns, MAP_FRAME, result.t, result.q, result.pose_covariance),
+        ),
+        (
+            ODOMETRY_TOPIC,
+            messages.odometry(
+                ns,
+                ODOM_FRAME,
+                camera,
+                result.odom_t,
+                result.odom_q,
+                result.linear,
+                result.angular,
+                result.odom_covariance,
+                result.twist_covariance,
+            ),
+        ),
     ]
     if result.mask is not None:
         out.append((SEGMENTATION_TOPIC, messages.image(ns, camera, result.mask, "mono8")))
@@ -173,8 +202,15 @@ def copy_topics(reader: BagReader, writer: BagWriter, outputs: dict[str, str] | 
         writer.add_topic(topic, msgtype)
 
 
-def replay(bag: str | Path, out: str | Path, localizer, image_topic: str | None = None, use_depth: bool = False,
-           force: bool = False, progress: bool = True) -> ReplaySummary:
+def replay(
+    bag: str | Path,
+    out: str | Path,
+    localizer,
+    image_topic: str | None = None,
+    use_depth: bool = False,
+    force: bool = False,
+    progress: bool = True,
+) -> ReplaySummary:
     """Run ``localizer`` over every image of ``bag`` in log-time order and write ``out`` (see module doc)."""
     from tqdm import tqdm
 
@@ -215,8 +251,14 @@ def replay(bag: str | Path, out: str | Path, localizer, image_topic: str | None 
                     try:
                         rgb = messages.any_image_to_rgb(msg)
                         depth_msg = depth_by_stamp.pop(messages.stamp_ns(msg), None) if use_depth else None
-                        depth = None if depth_msg is None else depth_to_metres(messages.image_to_array(depth_msg), depth_msg.encoding)
-                        result = localizer.step(rgb, "rgb8", messages.stamp_ns(msg) / 1e9, depth=depth, intrinsics=intrinsics)
+                        depth = (
+                            None
+                            if depth_msg is None
+                            else depth_to_metres(messages.image_to_array(depth_msg), depth_msg.encoding)
+                        )
+                        result = localizer.step(
+                            rgb, "rgb8", messages.stamp_ns(msg) / 1e9, depth=depth, intrinsics=intrinsics
+                        )
                     except FrameError as err:
                         summary.skipped[err.reason] += 1
                         bar.update(1)
@@ -235,21 +277,58 @@ def replay(bag: str | Path, out: str | Path, localizer, image_topic: str | None 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("bag", metavar="BAG", help="input bag (.mcap file, or a rosbag2 folder) with camera images")
-    p.add_argument("--checkpoint", required=True, help="checkpoint (NAME.safetensors or NAME; the NAME.json sidecar next to it)")
-    p.add_argument("--out", required=True, metavar="OUT.mcap", help="output bag: the input topics plus /vlocnet/pose, /vlocnet/pose_with_covariance, "
-                                                                    "/vlocnet/odometry, /vlocnet/segmentation (not for a pose-only model)")
-    p.add_argument("--image-topic", default=None, help="camera topic (default /camera/image_raw, else /camera/image_raw/compressed)")
-    p.add_argument("--through-node", action="store_true", help="run the real ROS node (console script 'localizer') and play the bag to it over DDS")
-    p.add_argument("--rate", default=None, metavar="HZ|max",
-                   help="--through-node: publish at the bag's rate (default), at HZ frames/s, or 'max': the next image when the previous pose came back")
-    p.add_argument("--max-gap-s", type=float, default=DEFAULT_MAX_GAP_S, help=f"reset the temporal state after a stamp gap longer than this (default {DEFAULT_MAX_GAP_S:g} s)")
-    p.add_argument("--use-depth", action="store_true", help=f"give {DEPTH_TOPIC} to the localizer for warping instead of the predicted depth")
-    p.add_argument("--map", default=None, metavar="MAP.npz|auto",
-                   help="refine the pose against this keyframe map (vlocnetpp map build), as the node's parameter map; 'auto': "
-                        f"NAME.map.npz beside the checkpoint (none, with a warning, when missing); adds {NETWORK_POSE_TOPIC} "
-                        "(the network's own pose). Default: no refinement")
-    p.add_argument("--refine-every", type=int, default=1, metavar="K",
-                   help="with --map: refine every K-th frame, the odometry moves the refined pose on in between (default 1: every frame)")
+    p.add_argument(
+        "--checkpoint", required=True, help="checkpoint (NAME.safetensors or NAME; the NAME.json sidecar next to it)"
+    )
+    p.add_argument(
+        "--out",
+        required=True,
+        metavar="OUT.mcap",
+        help="output bag: the input topics plus /vlocnet/pose, /vlocnet/pose_with_covariance, "
+        "/vlocnet/odometry, /vlocnet/segmentation (not for a pose-only model)",
+    )
+    p.add_argument(
+        "--image-topic",
+        default=None,
+        help="camera topic (default /camera/image_raw, else /camera/image_raw/compressed)",
+    )
+    p.add_argument(
+        "--through-node",
+        action="store_true",
+        help="run the real ROS node (console script 'localizer') and play the bag to it over DDS",
+    )
+    p.add_argument(
+        "--rate",
+        default=None,
+        metavar="HZ|max",
+        help="--through-node: publish at the bag's rate (default), at HZ frames/s, or 'max': the next image when the previous pose came back",
+    )
+    p.add_argument(
+        "--max-gap-s",
+        type=float,
+        default=DEFAULT_MAX_GAP_S,
+        help=f"reset the temporal state after a stamp gap longer than this (default {DEFAULT_MAX_GAP_S:g} s)",
+    )
+    p.add_argument(
+        "--use-depth",
+        action="store_true",
+        help=f"give {DEPTH_TOPIC} to the localizer for warping instead of the predicted depth",
+    )
+    p.add_argument(
+        "--map",
+        default=None,
+        metavar="MAP.npz|auto",
+        help="refine the pose against this keyframe map (vlocnetpp map build), as the node's parameter map; 'auto': "
+        f"NAME.map.npz beside the checkpoint (none, with a warning, when missing); adds {NETWORK_POSE_TOPIC} "
+        "(the network's own pose). Default: no refinement",
+    )
+    p.add_argument(
+        "--refine-every",
+        type=int,
+        default=1,
+        metavar="K",
+        help="with --map: refine every K-th frame, the odometry moves the refined pose on in between (default 1: every frame)",
+    )
     p.add_argument("--device", default="cpu", help="torch device (default cpu)")
     p.add_argument("--force", action="store_true", help="replace OUT.mcap if it exists")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -257,12 +336,28 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def bridge_argv(args: argparse.Namespace) -> list[str]:
     """The ``replay`` flags again, for the ``replay-node`` program (which takes the same ones)."""
-    argv = [str(args.bag), "--checkpoint", str(args.checkpoint), "--out", str(args.out), "--through-node",
-            "--max-gap-s", repr(args.max_gap_s), "--device", args.device, "--refine-every", str(args.refine_every)]
+    argv = [
+        str(args.bag),
+        "--checkpoint",
+        str(args.checkpoint),
+        "--out",
+        str(args.out),
+        "--through-node",
+        "--max-gap-s",
+        repr(args.max_gap_s),
+        "--device",
+        args.device,
+        "--refine-every",
+        str(args.refine_every),
+    ]
     for flag, value in (("--image-topic", args.image_topic), ("--rate", args.rate), ("--map", args.map)):
         if value is not None:
             argv += [flag, value]
-    argv += [flag for flag, on in (("--use-depth", args.use_depth), ("--force", args.force), ("--no-progress", args.no_progress)) if on]
+    argv += [
+        flag
+        for flag, on in (("--use-depth", args.use_depth), ("--force", args.force), ("--no-progress", args.no_progress))
+        if on
+    ]
     return argv
 
 
@@ -296,7 +391,9 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--max-gap-s must be a positive number of seconds, got {args.max_gap_s}")
     rate = parse_rate(args.rate)
     if rate is not None and not args.through_node:
-        raise UserError("--rate only applies with --through-node (in process every frame is processed as fast as possible)")
+        raise UserError(
+            "--rate only applies with --through-node (in process every frame is processed as fast as possible)"
+        )
     if Path(args.out).resolve() == Path(args.bag).resolve():
         raise UserError(f"--out {args.out} is the input bag")
     refuse_existing(args.out, args.force)
@@ -308,8 +405,15 @@ def run(args: argparse.Namespace) -> int:
     else:
         from vlocnetpp_core.inference.localizer import Localizer
 
-        localizer = Localizer.from_checkpoint(args.checkpoint, device=args.device, max_gap_s=args.max_gap_s, map_path=map_path,
-                                              refine_every=args.refine_every)
-        summary = replay(args.bag, args.out, localizer, args.image_topic, args.use_depth, args.force, progress=not args.no_progress)
+        localizer = Localizer.from_checkpoint(
+            args.checkpoint,
+            device=args.device,
+            max_gap_s=args.max_gap_s,
+            map_path=map_path,
+            refine_every=args.refine_every,
+        )
+        summary = replay(
+            args.bag, args.out, localizer, args.image_topic, args.use_depth, args.force, progress=not args.no_progress
+        )
     print(summary.format())
     return 0

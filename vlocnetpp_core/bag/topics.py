@@ -20,7 +20,9 @@ TF_TOPIC = "/tf"  # tf2_msgs/TFMessage; convert --robot-frame writes map -> robo
 TF_STATIC_TOPIC = "/tf_static"  # ... and robot -> camera here, once
 
 POSE_TOPIC = "/vlocnet/pose"
-POSE_WITH_COVARIANCE_TOPIC = "/vlocnet/pose_with_covariance"  # the same pose with its 6x6 covariance (robot_localization's input)
+POSE_WITH_COVARIANCE_TOPIC = (
+    "/vlocnet/pose_with_covariance"  # the same pose with its 6x6 covariance (robot_localization's input)
+)
 ODOMETRY_TOPIC = "/vlocnet/odometry"
 SEGMENTATION_TOPIC = "/vlocnet/segmentation"
 # With a keyframe map (refinement on): the network's own global pose (PoseStamped), beside the published one on POSE_TOPIC

@@ -71,8 +71,15 @@ class BenchSettings:
 
     @classmethod
     def quick(cls) -> BenchSettings:
-        return cls(repetitions=3, warmup=1, paper_input_size=(224, 128), node_repetitions=8, node_warmup=2,
-                   converter_frames=30, synth_frames=6)
+        return cls(
+            repetitions=3,
+            warmup=1,
+            paper_input_size=(224, 128),
+            node_repetitions=8,
+            node_warmup=2,
+            converter_frames=30,
+            synth_frames=6,
+        )
 
     def updated(self, values: dict, source: str) -> BenchSettings:
         """A copy with ``values`` (from a YAML file ``source``) applied, checked field by field."""
@@ -84,16 +91,26 @@ class BenchSettings:
         for name, value in values.items():
             default = getattr(self, name)
             if name.endswith("_size"):
-                if value is not None and not (isinstance(value, (list, tuple)) and len(value) == 2
-                                              and all(isinstance(v, int) and v > 0 for v in value)):
+                if value is not None and not (
+                    isinstance(value, (list, tuple))
+                    and len(value) == 2
+                    and all(isinstance(v, int) and v > 0 for v in value)
+                ):
                     raise DataError(source, f"{name} must be [width, height] in pixels, got {value!r}")
                 value = None if value is None else tuple(value)
             elif isinstance(default, bool):
                 if not isinstance(value, bool):
                     raise DataError(source, f"{name} must be true or false, got {value!r}")
             elif isinstance(default, int):
-                if not isinstance(value, int) or isinstance(value, bool) or value < (0 if name in ("threads", "warmup") else 1):
-                    raise DataError(source, f"{name} must be a whole number >= {0 if name in ('threads', 'warmup') else 1}, got {value!r}")
+                if (
+                    not isinstance(value, int)
+                    or isinstance(value, bool)
+                    or value < (0 if name in ("threads", "warmup") else 1)
+                ):
+                    raise DataError(
+                        source,
+                        f"{name} must be a whole number >= {0 if name in ('threads', 'warmup') else 1}, got {value!r}",
+                    )
             elif not isinstance(value, str):
                 raise DataError(source, f"{name} must be a string, got {value!r}")
             out[name] = value
@@ -107,7 +124,11 @@ class BenchSettings:
 # name -> (comparison, target, what it is)
 TARGETS: dict[str, tuple[str, float | None, str]] = {
     "cached_vs_recompute_speedup": (">=", 1.4, "paper step recomputing frame t-1 / step with cached state"),
-    "mtl_step_over_resnet50": ("<=", 3.0, "paper multitask step (fastest backend) / plain ResNet-50 forward, same input"),
+    "mtl_step_over_resnet50": (
+        "<=",
+        3.0,
+        "paper multitask step (fastest backend) / plain ResNet-50 forward, same input",
+    ),
     "node_latency_over_step": ("<=", 1.10, "lite: image-in -> pose-out via the node over DDS / bare Localizer.step"),
     "lite_hz": (">=", 15.0, "lite Localizer.step per second (faster backend)"),
     "converter_speed_over_png_decode": (">=", 0.8, "convert frames/s / PNG decode frames/s"),
@@ -115,11 +136,25 @@ TARGETS: dict[str, tuple[str, float | None, str]] = {
     "train_nchw_over_nhwc": (">=", 1.0, "lite stl-loc training step: NCHW network / channels-last network (as built)"),
     "peak_rss_mb": ("", None, "node peak resident memory while streaming (MiB)"),
     "paper_step_ms": ("<=", None, "paper multitask step with cached state (ms, fastest backend); 5 ms goal on CUDA"),
-    "node_refined_hz": (">=", 15.0, "shipped lite + keyframe map, refining every frame: frames/s through the node (lockstep)"),
+    "node_refined_hz": (
+        ">=",
+        15.0,
+        "shipped lite + keyframe map, refining every frame: frames/s through the node (lockstep)",
+    ),
 }
 GPU_PAPER_STEP_MS = 5.0
-NOT_TIMES = ("node_peak_rss_mb", "node_rss_mb", "converter_frames", "converter_bag_mb", "paper_step_gmac", "resnet50_gmac",
-             "cuda_graph_max_abs_diff", "compiled_max_abs_diff", "refine_share_every1", "refine_share_every2")  # measured values that are not seconds
+NOT_TIMES = (
+    "node_peak_rss_mb",
+    "node_rss_mb",
+    "converter_frames",
+    "converter_bag_mb",
+    "paper_step_gmac",
+    "resnet50_gmac",
+    "cuda_graph_max_abs_diff",
+    "compiled_max_abs_diff",
+    "refine_share_every1",
+    "refine_share_every2",
+)  # measured values that are not seconds
 
 
 def run_bench(settings: BenchSettings, device: str = "cpu", quick: bool = False, progress=None) -> dict:
@@ -138,10 +173,20 @@ def run_bench(settings: BenchSettings, device: str = "cpu", quick: bool = False,
     if device.startswith("cuda") and not torch.cuda.is_available():
         raise UserError(f"--device {device}: CUDA is not available here")
     use_threads(settings.threads)
-    report: dict = {"machine": {"device": device, "cpus": os.cpu_count(), "torch_threads": torch.get_num_threads(),
-                                "torch": torch.__version__, "onnxruntime": _version("onnxruntime"), "load_average_start": figures.cpu_load()},
-                    "settings": {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(settings).items()},
-                    "quick": quick, "notes": [], "times_ms": {}}
+    report: dict = {
+        "machine": {
+            "device": device,
+            "cpus": os.cpu_count(),
+            "torch_threads": torch.get_num_threads(),
+            "torch": torch.__version__,
+            "onnxruntime": _version("onnxruntime"),
+            "load_average_start": figures.cpu_load(),
+        },
+        "settings": {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(settings).items()},
+        "quick": quick,
+        "notes": [],
+        "times_ms": {},
+    }
     times: dict = {}
     with tempfile.TemporaryDirectory(prefix="vlocnetpp-bench-") as tmp:
         work = Path(tmp)
@@ -150,8 +195,16 @@ def run_bench(settings: BenchSettings, device: str = "cpu", quick: bool = False,
         times.update(synth)
         camera = figures.resize_all(frames, settings.camera_size)
         say("paper config: cached vs recompute vs ResNet-50")
-        paper = figures.paper_step(settings.paper_config, settings.paper_input_size, frames, device, settings.repetitions, settings.warmup,
-                                   work, settings.threads)
+        paper = figures.paper_step(
+            settings.paper_config,
+            settings.paper_input_size,
+            frames,
+            device,
+            settings.repetitions,
+            settings.warmup,
+            work,
+            settings.threads,
+        )
         if "onnx_error" in paper:
             report["notes"].append(f"onnx paper step not measured: {paper.pop('onnx_error')}")
         for name in ("cuda_graph", "compiled"):
@@ -160,8 +213,10 @@ def run_bench(settings: BenchSettings, device: str = "cpu", quick: bool = False,
         times.update({k: v for k, v in paper.items() if k != "input_size"})
         report["paper_input_size"] = paper["input_size"]
         if quick:
-            report["notes"].append(f"quick: paper config at {paper['input_size'][0]}x{paper['input_size'][1]} (not its 448x256), "
-                                   f"{settings.repetitions} repetitions, {settings.converter_frames} converter frames: indicative only")
+            report["notes"].append(
+                f"quick: paper config at {paper['input_size'][0]}x{paper['input_size'][1]} (not its 448x256), "
+                f"{settings.repetitions} repetitions, {settings.converter_frames} converter frames: indicative only"
+            )
         lite_ckpt = init_checkpoint(settings.lite_config, work / "lite", seed=0)
         say("lite config: Localizer.step, torch and onnx backends")
         lite = figures.lite_step(lite_ckpt, camera, device, settings.threads, settings.repetitions * 3, settings.warmup)
@@ -175,8 +230,17 @@ def run_bench(settings: BenchSettings, device: str = "cpu", quick: bool = False,
             say("node: latency over DDS vs bare Localizer.step")
             try:
                 require("rclpy", "the node figure (ROS 2 Jazzy)")
-                node = figures.node_latency(lite_ckpt, camera, work, device, settings.threads, settings.node_backend,
-                                            settings.node_transport, settings.node_repetitions, settings.node_warmup)
+                node = figures.node_latency(
+                    lite_ckpt,
+                    camera,
+                    work,
+                    device,
+                    settings.threads,
+                    settings.node_backend,
+                    settings.node_transport,
+                    settings.node_repetitions,
+                    settings.node_warmup,
+                )
             except UserError as err:
                 report["notes"].append(f"node not measured: {err}")
                 node = {}
@@ -190,7 +254,11 @@ def run_bench(settings: BenchSettings, device: str = "cpu", quick: bool = False,
         except UserError as err:
             report["notes"].append(f"converter not measured: {err}")
         else:
-            times.update(figures.converter(work, settings.converter_frames, settings.synth_size, settings.repetitions, settings.warmup))
+            times.update(
+                figures.converter(
+                    work, settings.converter_frames, settings.synth_size, settings.repetitions, settings.warmup
+                )
+            )
     report["machine"]["load_average_end"] = figures.cpu_load()
     _add_figures(report, times, device)
     return report
@@ -202,12 +270,26 @@ def _refinement(settings: BenchSettings, camera: list, work: Path, device: str, 
 
     times: dict = {}
     try:
-        times.update(refinement.refined_steps(camera, device, settings.threads, settings.repetitions * 3, settings.warmup,
-                                              settings.refinement_map))
+        times.update(
+            refinement.refined_steps(
+                camera, device, settings.threads, settings.repetitions * 3, settings.warmup, settings.refinement_map
+            )
+        )
         if settings.node:
             require("rclpy", "the node figure (ROS 2 Jazzy)")
-            times.update(refinement.node_rates(camera, work, device, settings.threads, settings.node_backend, settings.node_transport,
-                                               settings.node_repetitions, settings.node_warmup, settings.refinement_map))
+            times.update(
+                refinement.node_rates(
+                    camera,
+                    work,
+                    device,
+                    settings.threads,
+                    settings.node_backend,
+                    settings.node_transport,
+                    settings.node_repetitions,
+                    settings.node_warmup,
+                    settings.refinement_map,
+                )
+            )
     except UserError as err:
         notes.append(f"refinement {'through the node ' if times else ''}not measured: {err}")
     return times
@@ -216,8 +298,12 @@ def _refinement(settings: BenchSettings, camera: list, work: Path, device: str, 
 def _add_figures(report: dict, times: dict, device: str) -> None:
     """The figures, their targets and the absolute times (ms) from the measured ``times`` (seconds)."""
     lite_steps = {name: times.get(f"lite_step_{name}") for name in ("torch", "onnx")}
-    paper_steps = {"torch": times["paper_step_cached"], "onnx": times.get("paper_step_onnx"),
-                   "cuda_graph": times.get("paper_step_cuda_graph"), "compiled": times.get("paper_step_compiled")}
+    paper_steps = {
+        "torch": times["paper_step_cached"],
+        "onnx": times.get("paper_step_onnx"),
+        "cuda_graph": times.get("paper_step_cuda_graph"),
+        "compiled": times.get("paper_step_compiled"),
+    }
     best, paper_best = _fastest(lite_steps), _fastest(paper_steps)
     converter = "converter_frame" in times
     values = {
@@ -230,12 +316,17 @@ def _add_figures(report: dict, times: dict, device: str) -> None:
         "train_nchw_over_nhwc": times["train_step_nchw"] / times["train_step_nhwc"],
         "peak_rss_mb": times.get("node_peak_rss_mb"),
         "paper_step_ms": 1000.0 * paper_steps[paper_best],
-        "node_refined_hz": 1.0 / times["node_refined_latency_every1"] if "node_refined_latency_every1" in times else None,
+        "node_refined_hz": 1.0 / times["node_refined_latency_every1"]
+        if "node_refined_latency_every1" in times
+        else None,
     }
     report.update(values)
     if converter:
         # wall time per frame on an idle 2-core machine is at least half the CPU time and at least the main thread's
-        cpu_bound = max((times["converter_cpu_decode_threads"] + times["converter_cpu_main_thread"]) / 2, times["converter_cpu_main_thread"])
+        cpu_bound = max(
+            (times["converter_cpu_decode_threads"] + times["converter_cpu_main_thread"]) / 2,
+            times["converter_cpu_main_thread"],
+        )
         report["converter_speed_over_png_decode_idle_estimate"] = times["png_decode_cpu"] / cpu_bound
     report["lite_backend"] = best
     for name, value in lite_steps.items():
@@ -253,16 +344,30 @@ def _add_figures(report: dict, times: dict, device: str) -> None:
             target, op = GPU_PAPER_STEP_MS, "<="
         value = values[name]
         met = None if target is None or value is None else (value >= target if op == ">=" else value <= target)
-        targets[name] = {"value": value, "target": target, "compare": op if target is not None else None, "met": met, "what": what}
+        targets[name] = {
+            "value": value,
+            "target": target,
+            "compare": op if target is not None else None,
+            "met": met,
+            "what": what,
+        }
     report["targets"] = targets
-    report["notes"].append(f"lite_hz uses the {best} backend ("
-                           + ", ".join(f"{n} {report[f'lite_hz_{n}']:.1f} Hz" for n in lite_steps if report[f"lite_hz_{n}"] is not None) + ")")
-    report["notes"].append(f"mtl_step_over_resnet50 and paper_step_ms use the {paper_best} paper step ("
-                           + ", ".join(f"{n} {report[f'mtl_step_over_resnet50_{n}']:.2f}" for n in paper_steps
-                                       if report.get(f"mtl_step_over_resnet50_{n}") is not None)
-                           + f"); the ResNet-50 yardstick is always one plain eager torch forward; in compute the step is "
-                           f"{report['mtl_gmac_over_resnet50']:.2f}x the ResNet-50 ({times['paper_step_gmac']:.2f} vs "
-                           f"{times['resnet50_gmac']:.2f} GMAC)")
+    report["notes"].append(
+        f"lite_hz uses the {best} backend ("
+        + ", ".join(f"{n} {report[f'lite_hz_{n}']:.1f} Hz" for n in lite_steps if report[f"lite_hz_{n}"] is not None)
+        + ")"
+    )
+    report["notes"].append(
+        f"mtl_step_over_resnet50 and paper_step_ms use the {paper_best} paper step ("
+        + ", ".join(
+            f"{n} {report[f'mtl_step_over_resnet50_{n}']:.2f}"
+            for n in paper_steps
+            if report.get(f"mtl_step_over_resnet50_{n}") is not None
+        )
+        + f"); the ResNet-50 yardstick is always one plain eager torch forward; in compute the step is "
+        f"{report['mtl_gmac_over_resnet50']:.2f}x the ResNet-50 ({times['paper_step_gmac']:.2f} vs "
+        f"{times['resnet50_gmac']:.2f} GMAC)"
+    )
 
 
 def _fastest(steps: dict[str, float | None]) -> str:
@@ -286,22 +391,29 @@ def format_table(report: dict) -> str:
     t = report["times_ms"]
     basis = {
         "cached_vs_recompute_speedup": f"recompute {t.get('paper_step_recompute', 0):.1f} ms / cached {t.get('paper_step_cached', 0):.1f} ms"
-                                       f" at {report['paper_input_size'][0]}x{report['paper_input_size'][1]}",
+        f" at {report['paper_input_size'][0]}x{report['paper_input_size'][1]}",
         "mtl_step_over_resnet50": f"{report['paper_backend']}: torch step {t['paper_step_cached']:.1f} ms"
-                                  + (f", onnx {t['paper_step_onnx']:.1f} ms" if "paper_step_onnx" in t else "")
-                                  + (f", CUDA graph {t['paper_step_cuda_graph']:.2f} ms" if "paper_step_cuda_graph" in t else "")
-                                  + (f", compiled {t['paper_step_compiled']:.2f} ms" if "paper_step_compiled" in t else "")
-                                  + f" / ResNet-50 {t['resnet50_forward']:.1f} ms (compute {report['mtl_gmac_over_resnet50']:.2f}x)",
-        "node_latency_over_step": (f"node {t['node_latency']:.1f} ms / bare {t['node_bare_step']:.1f} ms ({report['settings']['node_backend']}, "
-                                   f"{report['settings']['node_transport']} DDS, "
-                                   f"camera {report['camera_size'][0]}x{report['camera_size'][1]})") if "node_latency" in t else "not measured",
+        + (f", onnx {t['paper_step_onnx']:.1f} ms" if "paper_step_onnx" in t else "")
+        + (f", CUDA graph {t['paper_step_cuda_graph']:.2f} ms" if "paper_step_cuda_graph" in t else "")
+        + (f", compiled {t['paper_step_compiled']:.2f} ms" if "paper_step_compiled" in t else "")
+        + f" / ResNet-50 {t['resnet50_forward']:.1f} ms (compute {report['mtl_gmac_over_resnet50']:.2f}x)",
+        "node_latency_over_step": (
+            f"node {t['node_latency']:.1f} ms / bare {t['node_bare_step']:.1f} ms ({report['settings']['node_backend']}, "
+            f"{report['settings']['node_transport']} DDS, "
+            f"camera {report['camera_size'][0]}x{report['camera_size'][1]})"
+        )
+        if "node_latency" in t
+        else "not measured",
         "lite_hz": f"{report['lite_backend']}: torch {t['lite_step_torch']:.1f} ms"
-                   + (f", onnx {t['lite_step_onnx']:.1f} ms" if "lite_step_onnx" in t else "")
-                   + f" at {report['lite_input_size'][0]}x{report['lite_input_size'][1]}",
-        "converter_speed_over_png_decode": (f"decode {t['png_decode_frame']:.2f} ms / convert {t['converter_frame']:.2f} ms per frame; "
-                                            f"CPU: decode threads {t['converter_cpu_decode_threads']:.2f}, main {t['converter_cpu_main_thread']:.2f} "
-                                            f"-> {report['converter_speed_over_png_decode_idle_estimate']:.2f} on an idle 2-core machine")
-                                           if "converter_frame" in t else "not measured",
+        + (f", onnx {t['lite_step_onnx']:.1f} ms" if "lite_step_onnx" in t else "")
+        + f" at {report['lite_input_size'][0]}x{report['lite_input_size'][1]}",
+        "converter_speed_over_png_decode": (
+            f"decode {t['png_decode_frame']:.2f} ms / convert {t['converter_frame']:.2f} ms per frame; "
+            f"CPU: decode threads {t['converter_cpu_decode_threads']:.2f}, main {t['converter_cpu_main_thread']:.2f} "
+            f"-> {report['converter_speed_over_png_decode_idle_estimate']:.2f} on an idle 2-core machine"
+        )
+        if "converter_frame" in t
+        else "not measured",
         "synth_fps": f"{t['synth_frame']:.1f} ms per frame",
         "train_nchw_over_nhwc": f"NCHW {t['train_step_nchw']:.0f} ms / channels-last {t['train_step_nhwc']:.0f} ms per step",
         "peak_rss_mb": f"now {report['node_rss_mb']:.0f} MiB" if "node_rss_mb" in report else "not measured",
@@ -317,8 +429,10 @@ def format_table(report: dict) -> str:
     widths = [max(len(r[i]) for r in rows) for i in range(4)]
     lines = ["  ".join(r[i].ljust(widths[i]) for i in range(4)) + "  " + r[4] for r in rows]
     m = report["machine"]
-    lines.append(f"\n{m['device']}, {m['cpus']} CPUs, torch {m['torch']} ({m['torch_threads']} threads), onnxruntime {m['onnxruntime'] or 'not installed'}; "
-                 f"load average {m['load_average_start']} -> {m['load_average_end']}")
+    lines.append(
+        f"\n{m['device']}, {m['cpus']} CPUs, torch {m['torch']} ({m['torch_threads']} threads), onnxruntime {m['onnxruntime'] or 'not installed'}; "
+        f"load average {m['load_average_start']} -> {m['load_average_end']}"
+    )
     lines += [f"note: {n}" for n in report["notes"]]
     return "\n".join(lines)
 
@@ -328,9 +442,11 @@ def _refinement_basis(report: dict) -> str:
     t = report["times_ms"]
     if "refine_step_every1" not in t:
         return "not measured"
-    text = (f"step: network {t['refine_step_none']:.1f} ms, refining every frame {t['refine_step_every1']:.1f} ms "
-            f"(+{t['refine_step_every1'] - t['refine_step_none']:.1f} ms, {100 * report['refine_share_every1']:.0f} % refined), "
-            f"every 2nd {t['refine_step_every2']:.1f} ms")
+    text = (
+        f"step: network {t['refine_step_none']:.1f} ms, refining every frame {t['refine_step_every1']:.1f} ms "
+        f"(+{t['refine_step_every1'] - t['refine_step_none']:.1f} ms, {100 * report['refine_share_every1']:.0f} % refined), "
+        f"every 2nd {t['refine_step_every2']:.1f} ms"
+    )
     if "node_refined_latency_every2" in t:
         text += f"; node every 2nd frame {1000 / t['node_refined_latency_every2']:.1f} Hz"
     return text
@@ -348,9 +464,18 @@ def _jsonable(obj):
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
-    p.add_argument("--config", metavar="FILE", default=None, help="YAML of bench settings overriding the defaults (see BenchSettings)")
+    p.add_argument(
+        "--config",
+        metavar="FILE",
+        default=None,
+        help="YAML of bench settings overriding the defaults (see BenchSettings)",
+    )
     p.add_argument("--device", default="cpu", help="cpu or cuda (cuda:N) for the network figures (default cpu)")
-    p.add_argument("--quick", action="store_true", help="under a minute: paper config at 224x128, few repetitions (indicative only)")
+    p.add_argument(
+        "--quick",
+        action="store_true",
+        help="under a minute: paper config at 224x128, few repetitions (indicative only)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:

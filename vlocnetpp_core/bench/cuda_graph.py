@@ -23,14 +23,22 @@ from vlocnetpp_core.model import StepOutput, StreamState
 class CudaGraphStep:
     """``step(image, state, K) -> (StepOutput, StreamState)`` of ``model`` as one captured CUDA graph."""
 
-    def __init__(self, model: torch.nn.Module, image: torch.Tensor, state: StreamState, K: torch.Tensor, warmup: int = 3):
+    def __init__(
+        self, model: torch.nn.Module, image: torch.Tensor, state: StreamState, K: torch.Tensor, warmup: int = 3
+    ):
         """``image (1, 3, H, W)``, ``K (1, 3, 3)`` and every tensor of ``state`` on the same CUDA device."""
         if image.device.type != "cuda":
             raise ValueError(f"CUDA graphs need CUDA tensors, got the image on {image.device}")
         self._image, self._K = image.clone(), K.clone()
-        self._state = StreamState(**{f.name: None if getattr(state, f.name) is None else getattr(state, f.name).clone()
-                                     for f in fields(state)})
-        side = torch.cuda.Stream(image.device)  # warm-up on a side stream (cuDNN autotuning, allocations), as capture requires
+        self._state = StreamState(
+            **{
+                f.name: None if getattr(state, f.name) is None else getattr(state, f.name).clone()
+                for f in fields(state)
+            }
+        )
+        side = torch.cuda.Stream(
+            image.device
+        )  # warm-up on a side stream (cuDNN autotuning, allocations), as capture requires
         side.wait_stream(torch.cuda.current_stream(image.device))
         with torch.cuda.stream(side):
             for _ in range(warmup):
@@ -54,6 +62,14 @@ class CudaGraphStep:
 def max_abs_difference(a: StepOutput, b: StepOutput) -> float:
     """Largest absolute difference over the pose, odometry and segmentation heads of two step outputs (heads that
     neither ran, such as the segmentation of a pose-only model, are left out)."""
-    return max(float((x - y).abs().max()) for x, y in ((a.xyz, b.xyz), (a.quat, b.quat), (a.rel_xyz, b.rel_xyz),
-                                                        (a.rel_quat, b.rel_quat), (a.seg_logits, b.seg_logits))
-               if x is not None or y is not None)
+    return max(
+        float((x - y).abs().max())
+        for x, y in (
+            (a.xyz, b.xyz),
+            (a.quat, b.quat),
+            (a.rel_xyz, b.rel_xyz),
+            (a.rel_quat, b.rel_quat),
+            (a.seg_logits, b.seg_logits),
+        )
+        if x is not None or y is not None
+    )

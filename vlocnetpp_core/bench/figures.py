@@ -24,7 +24,9 @@ from vlocnetpp_core.errors import UserError
 from vlocnetpp_core.programs import program_command
 
 
-def synth_frames(count: int, size: tuple[int, int], scene: str = "campus", seed: int = 0) -> tuple[list[np.ndarray], dict]:
+def synth_frames(
+    count: int, size: tuple[int, int], scene: str = "campus", seed: int = 0
+) -> tuple[list[np.ndarray], dict]:
     """``count`` consecutive frames (RGB uint8) of a 20 Hz test visit of the synthetic campus at ``size = (W, H)``.
 
     Returns the frames and ``{"synth_frame": s, "campus_build": s}``: the median render time of
@@ -47,8 +49,16 @@ def synth_frames(count: int, size: tuple[int, int], scene: str = "campus", seed:
     return frames, {"synth_frame": median(times), "campus_build": build}
 
 
-def paper_step(config: str, input_size: tuple[int, int] | None, frames: list[np.ndarray], device: str, repetitions: int,
-               warmup: int, workdir: Path, threads: int = 0) -> dict:
+def paper_step(
+    config: str,
+    input_size: tuple[int, int] | None,
+    frames: list[np.ndarray],
+    device: str,
+    repetitions: int,
+    warmup: int,
+    workdir: Path,
+    threads: int = 0,
+) -> dict:
     """Paper-config streaming step with the cached state (torch, the ONNX Runtime graph of the same
     weights, and on CUDA the torch step replayed from a CUDA graph and compiled by ``torch.compile``)
     vs recomputing the previous frame, and one plain ResNet-50 forward (torch, eager) at the same input size; torch in
@@ -82,7 +92,10 @@ def paper_step(config: str, input_size: tuple[int, int] | None, frames: list[np.
     onnx_step = _onnx_paper_step(model, workdir / f"{cfg.name}-{W}x{H}.onnx", device, threads, result)
     with torch.inference_mode():
         _, state = model.step(prev, None, K)
-        for name, call in (("paper_step_gmac", lambda: model.step(cur, state, K)), ("resnet50_gmac", lambda: resnet(cur))):
+        for name, call in (
+            ("paper_step_gmac", lambda: model.step(cur, state, K)),
+            ("resnet50_gmac", lambda: resnet(cur)),
+        ):
             counter = FlopCounterMode(display=False)
             with counter:
                 call()
@@ -102,8 +115,13 @@ def paper_step(config: str, input_size: tuple[int, int] | None, frames: list[np.
                 if fast_step is not None:
                     cases[name] = lambda fast_step=fast_step: fast_step(cur, state, K)
         times = interleaved(cases, repetitions, warmup, synchronizer(device))
-    result.update({"paper_step_cached": median(times["cached"]), "paper_step_recompute": median(times["recompute"]),
-                   "resnet50_forward": median(times["resnet50"])})
+    result.update(
+        {
+            "paper_step_cached": median(times["cached"]),
+            "paper_step_recompute": median(times["recompute"]),
+            "resnet50_forward": median(times["resnet50"]),
+        }
+    )
     for name in ("onnx", "cuda_graph", "compiled"):
         if name in times:
             result[f"paper_step_{name}"] = median(times[name])
@@ -134,7 +152,9 @@ def _cuda_graph_step(model: torch.nn.Module, image: torch.Tensor, state, K: torc
         start = time.perf_counter()
         graph_step = CudaGraphStep(model, image, state, K)
         result["cuda_graph_capture"] = time.perf_counter() - start
-        result["cuda_graph_max_abs_diff"] = max_abs_difference(graph_step(image, state, K)[0], model.step(image, state, K)[0])
+        result["cuda_graph_max_abs_diff"] = max_abs_difference(
+            graph_step(image, state, K)[0], model.step(image, state, K)[0]
+        )
         return graph_step
     except (RuntimeError, ValueError) as err:
         result["cuda_graph_error"] = f"capture failed: {_first_line(err)}"
@@ -173,7 +193,9 @@ def _image_tensor(rgb: np.ndarray, size: tuple[int, int], device: str) -> torch.
     return image_tensor(resize_image(rgb, size)).to(device)
 
 
-def lite_step(checkpoint: Path, frames: list[np.ndarray], device: str, threads: int, repetitions: int, warmup: int) -> dict:
+def lite_step(
+    checkpoint: Path, frames: list[np.ndarray], device: str, threads: int, repetitions: int, warmup: int
+) -> dict:
     """``Localizer.step`` (decode, resize, model step, mask) of the lite checkpoint on camera frames,
     torch and ONNX Runtime backends interleaved, each on its own stream of the same frames.
 
@@ -200,6 +222,7 @@ def lite_step(checkpoint: Path, frames: list[np.ndarray], device: str, threads: 
             k = counters[name]
             counters[name] += 1
             localizers[name].step(frames[k % len(frames)], "rgb8", 0.05 * k)
+
         return step
 
     times = interleaved({name: stepper(name) for name in localizers}, repetitions, warmup, synchronizer(device))
@@ -222,9 +245,14 @@ def train_step(config: str, device: str, repetitions: int, warmup: int, batch: i
     cfg = load_model_config(config)
     (w, h), gen = cfg.input_size, torch.Generator().manual_seed(0)
     quats = torch.nn.functional.normalize(torch.randn(batch, clip_len, 4, generator=gen), dim=-1)
-    clips = {"image": torch.rand(batch, clip_len, 3, h, w, generator=gen), "t": torch.randn(batch, clip_len, 3, generator=gen),
-             "q": quats, "rel_t": torch.randn(batch, clip_len, 3, generator=gen), "rel_q": quats,
-             "K": torch.tensor([[w / 2, 0.0, w / 2], [0.0, w / 2, h / 2], [0.0, 0.0, 1.0]]).expand(batch, clip_len, 3, 3)}
+    clips = {
+        "image": torch.rand(batch, clip_len, 3, h, w, generator=gen),
+        "t": torch.randn(batch, clip_len, 3, generator=gen),
+        "q": quats,
+        "rel_t": torch.randn(batch, clip_len, 3, generator=gen),
+        "rel_q": quats,
+        "K": torch.tensor([[w / 2, 0.0, w / 2], [0.0, w / 2, h / 2], [0.0, 0.0, 1.0]]).expand(batch, clip_len, 3, 3),
+    }
     clips = {k: v.to(device) for k, v in clips.items()}
     criterion = VLocNetLoss(stage_tasks("stl-loc", cfg.tasks), depth=cfg.warping).to(device)
     cases = {}
@@ -236,21 +264,50 @@ def train_step(config: str, device: str, repetitions: int, warmup: int, batch: i
         def step(model=model) -> None:
             loss, _ = criterion(forward_stage(model, clips, "stl-loc"), clips)
             loss.backward()
+
         cases[name] = step
     times = interleaved(cases, repetitions, warmup, synchronizer(device))
     return {f"train_step_{name}": median(values) for name, values in times.items()}
 
 
-def node_latency(checkpoint: Path, frames: list[np.ndarray], workdir: Path, device: str, threads: int, backend: str, transport: str,
-                 repetitions: int, warmup: int, timeout_s: float = 300.0, map_path: Path | None = None, refine_every: int = 1) -> dict:
+def node_latency(
+    checkpoint: Path,
+    frames: list[np.ndarray],
+    workdir: Path,
+    device: str,
+    threads: int,
+    backend: str,
+    transport: str,
+    repetitions: int,
+    warmup: int,
+    timeout_s: float = 300.0,
+    map_path: Path | None = None,
+    refine_every: int = 1,
+) -> dict:
     """Run the ``latency-bench`` ROS program (the real node over DDS vs the bare Localizer,
     interleaved); medians of its per-frame seconds, and the node's memory. ``map_path``: both refine against it."""
     path = workdir / "camera_frames.npy"
     np.save(path, np.stack(frames))
-    argv = [*program_command("latency-bench"), "--checkpoint", str(checkpoint), "--frames", str(path),
-            "--repetitions", str(repetitions), "--warmup", str(warmup), "--device", device, "--backend", backend,
-            "--num-threads", str(threads), "--transport", transport,
-            *(["--map", str(map_path), "--refine-every", str(refine_every)] if map_path is not None else [])]
+    argv = [
+        *program_command("latency-bench"),
+        "--checkpoint",
+        str(checkpoint),
+        "--frames",
+        str(path),
+        "--repetitions",
+        str(repetitions),
+        "--warmup",
+        str(warmup),
+        "--device",
+        device,
+        "--backend",
+        backend,
+        "--num-threads",
+        str(threads),
+        "--transport",
+        transport,
+        *(["--map", str(map_path), "--refine-every", str(refine_every)] if map_path is not None else []),
+    ]
     try:
         proc = subprocess.run(argv, capture_output=True, text=True, timeout=timeout_s, stdin=subprocess.DEVNULL)
     except subprocess.TimeoutExpired:
@@ -259,8 +316,13 @@ def node_latency(checkpoint: Path, frames: list[np.ndarray], workdir: Path, devi
         tail = "\n".join((proc.stderr or proc.stdout).strip().splitlines()[-8:])
         raise UserError(f"the node latency measurement failed (exit code {proc.returncode}):\n{tail}")
     raw = json.loads(proc.stdout.strip().splitlines()[-1])
-    return {"node_latency": median(raw["latency_s"]), "node_bare_step": median(raw["step_s"]), "node_peak_rss_mb": raw["node_peak_rss_mb"],
-            "node_rss_mb": raw["node_rss_mb"], "node_startup": raw["startup_s"]}
+    return {
+        "node_latency": median(raw["latency_s"]),
+        "node_bare_step": median(raw["step_s"]),
+        "node_peak_rss_mb": raw["node_peak_rss_mb"],
+        "node_rss_mb": raw["node_rss_mb"],
+        "node_startup": raw["startup_s"],
+    }
 
 
 def converter(workdir: Path, frames: int, size: tuple[int, int], repetitions: int, warmup: int) -> dict:
@@ -277,7 +339,9 @@ def converter(workdir: Path, frames: int, size: tuple[int, int], repetitions: in
     from vlocnetpp_core.synth import render_dataset
 
     root = workdir / "converter_dataset"
-    render_dataset(root, train_loops=0, test_loops=1, frames_per_loop=frames, size=size, progress=False, frame_interval=0.05)
+    render_dataset(
+        root, train_loops=0, test_loops=1, frames_per_loop=frames, size=size, progress=False, frame_interval=0.05
+    )
     index = open_dataset(root, split="test")
     pngs = [p for r in index.records for p in (r.image, r.labels) if p is not None and p.endswith(".png")]
     out = workdir / "converter.mcap"
@@ -314,9 +378,15 @@ def converter(workdir: Path, frames: int, size: tuple[int, int], repetitions: in
     times = interleaved({"convert": convert_once, "decode": decode}, repetitions, warmup, after=remove_output)
     n = len(index)
     cpu_ms = {k: median(v) / n for k, v in cpu.items()}
-    return {"converter_frame": median(times["convert"]) / n, "png_decode_frame": median(times["decode"]) / n,
-            "converter_cpu_decode_threads": cpu_ms["decode_threads"], "converter_cpu_main_thread": cpu_ms["main_thread"],
-            "png_decode_cpu": cpu_ms["png_decode"], "converter_frames": n, "converter_bag_mb": size_mb[-1]}
+    return {
+        "converter_frame": median(times["convert"]) / n,
+        "png_decode_frame": median(times["decode"]) / n,
+        "converter_cpu_decode_threads": cpu_ms["decode_threads"],
+        "converter_cpu_main_thread": cpu_ms["main_thread"],
+        "png_decode_cpu": cpu_ms["png_decode"],
+        "converter_frames": n,
+        "converter_bag_mb": size_mb[-1],
+    }
 
 
 def cpu_load() -> list[float] | None:

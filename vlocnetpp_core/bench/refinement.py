@@ -42,7 +42,9 @@ def shipped_model_and_map(map_setting: str = "auto") -> tuple[Path, Path]:
     return checkpoint, path
 
 
-def refined_steps(frames: list[np.ndarray], device: str, threads: int, repetitions: int, warmup: int, map_setting: str = "auto") -> dict:
+def refined_steps(
+    frames: list[np.ndarray], device: str, threads: int, repetitions: int, warmup: int, map_setting: str = "auto"
+) -> dict:
     """Seconds per ``Localizer.step`` of the shipped model on consecutive ``frames`` (cycled) without refinement and
     refining every k-th frame (k in :data:`EVERY`), interleaved; and the share of frames each published refined."""
     from vlocnetpp_core.inference.localizer import Localizer
@@ -50,8 +52,9 @@ def refined_steps(frames: list[np.ndarray], device: str, threads: int, repetitio
     checkpoint, map_path = shipped_model_and_map(map_setting)
     localizers = {"none": Localizer.from_checkpoint(checkpoint, device=device, num_threads=threads)}
     for k in EVERY:
-        localizers[f"every{k}"] = Localizer.from_checkpoint(checkpoint, device=device, num_threads=threads, map_path=map_path,
-                                                            refine_every=k)
+        localizers[f"every{k}"] = Localizer.from_checkpoint(
+            checkpoint, device=device, num_threads=threads, map_path=map_path, refine_every=k
+        )
     counters = {name: 0 for name in localizers}
     sources: dict[str, list[str]] = {name: [] for name in localizers}
 
@@ -60,23 +63,50 @@ def refined_steps(frames: list[np.ndarray], device: str, threads: int, repetitio
             k = counters[name]
             counters[name] += 1
             sources[name].append(localizers[name].step(frames[k % len(frames)], "rgb8", FRAME_INTERVAL_S * k).source)
+
         return step
 
     times = interleaved({name: stepper(name) for name in localizers}, repetitions, warmup)
     out = {f"refine_step_{name}": median(values) for name, values in times.items()}
-    out.update({f"refine_share_{name}": float(np.mean([s != "network" for s in sources[name]])) for name in localizers if name != "none"})
+    out.update(
+        {
+            f"refine_share_{name}": float(np.mean([s != "network" for s in sources[name]]))
+            for name in localizers
+            if name != "none"
+        }
+    )
     return out
 
 
-def node_rates(frames: list[np.ndarray], workdir: Path, device: str, threads: int, backend: str, transport: str,
-               repetitions: int, warmup: int, map_setting: str = "auto") -> dict:
+def node_rates(
+    frames: list[np.ndarray],
+    workdir: Path,
+    device: str,
+    threads: int,
+    backend: str,
+    transport: str,
+    repetitions: int,
+    warmup: int,
+    map_setting: str = "auto",
+) -> dict:
     """Lockstep seconds per frame through the node over DDS with the shipped model and map, refining every k-th frame."""
     from vlocnetpp_core.bench.figures import node_latency
 
     checkpoint, map_path = shipped_model_and_map(map_setting)
     out = {}
     for k in EVERY:
-        node = node_latency(checkpoint, frames, workdir, device, threads, backend, transport, repetitions, warmup,
-                            map_path=map_path, refine_every=k)
+        node = node_latency(
+            checkpoint,
+            frames,
+            workdir,
+            device,
+            threads,
+            backend,
+            transport,
+            repetitions,
+            warmup,
+            map_path=map_path,
+            refine_every=k,
+        )
         out[f"node_refined_latency_every{k}"] = node["node_latency"]
     return out

@@ -18,8 +18,13 @@ def synchronizer(device: str | torch.device) -> Callable[[], None]:
     return lambda: None
 
 
-def interleaved(cases: dict[str, Callable[[], object]], repetitions: int, warmup: int = 1,
-                sync: Callable[[], None] = lambda: None, after: Callable[[str], None] | None = None) -> dict[str, list[float]]:
+def interleaved(
+    cases: dict[str, Callable[[], object]],
+    repetitions: int,
+    warmup: int = 1,
+    sync: Callable[[], None] = lambda: None,
+    after: Callable[[str], None] | None = None,
+) -> dict[str, list[float]]:
     """Seconds of each call of each case.
 
     ``warmup`` untimed rounds first (allocations, lazy initialisation, caches), then

@@ -69,22 +69,28 @@ class CameraExtrinsics:
         return cls.from_values(values, name)
 
     @classmethod
-    def from_values(cls, values: object, name: str = "parameter camera_extrinsics", tolerance: float = QUAT_NORM_TOLERANCE) -> CameraExtrinsics:
+    def from_values(
+        cls, values: object, name: str = "parameter camera_extrinsics", tolerance: float = QUAT_NORM_TOLERANCE
+    ) -> CameraExtrinsics:
         """From 7 numbers ``x, y, z, qw, qx, qy, qz``; the quaternion must be unit-norm within ``tolerance``
         (it is then normalised). Raises :class:`UserError` naming ``name`` otherwise."""
         what = f"{name} must be 7 numbers [x, y, z, qw, qx, qy, qz] (the camera's pose in base_frame: metres, unit quaternion)"
         if isinstance(values, (str, bytes)) or not isinstance(values, Sequence | np.ndarray):
             raise UserError(f"{what}, got {values!r}")
         items = list(values)
-        if len(items) != 7 or not all(isinstance(v, int | float | np.number) and not isinstance(v, bool) for v in items):
+        if len(items) != 7 or not all(
+            isinstance(v, int | float | np.number) and not isinstance(v, bool) for v in items
+        ):
             raise UserError(f"{what}, got {len(items)} value(s): {items!r}")
         v = np.asarray(items, dtype=np.float64)
         if not np.isfinite(v).all():
             raise UserError(f"{what}, got non-finite values: {v.tolist()}")
         norm = float(np.linalg.norm(v[3:]))
         if not math.isclose(norm, 1.0, abs_tol=tolerance):
-            raise UserError(f"{what}: the quaternion (qw, qx, qy, qz) = {v[3:].tolist()} has norm {norm:.6g}, "
-                            f"not 1 within {tolerance:g}")
+            raise UserError(
+                f"{what}: the quaternion (qw, qx, qy, qz) = {v[3:].tolist()} has norm {norm:.6g}, "
+                f"not 1 within {tolerance:g}"
+            )
         return cls(t=v[:3].copy(), q=geometry.quat_normalize(v[3:]))
 
     @property
@@ -163,10 +169,20 @@ def to_base_frame(result: LocalizerResult, ext: CameraExtrinsics) -> LocalizerRe
     helpers as one batch, the covariances through :func:`base_pose_covariance` and :func:`base_odometry_covariance`.
     """
     left = np.stack((np.eye(4), ext.matrix, ext.matrix))  # global pose: T ext^-1; odometry, relative: ext T ext^-1
-    t, q = _moved(np.stack((result.t, result.odom_t, result.rel_t)), np.stack((result.q, result.odom_q, result.rel_q)), left, ext)
+    t, q = _moved(
+        np.stack((result.t, result.odom_t, result.rel_t)), np.stack((result.q, result.odom_q, result.rel_q)), left, ext
+    )
     linear, angular = base_twist(result.linear, result.angular, ext)
     return dataclasses.replace(
-        result, t=t[0], q=q[0], odom_t=t[1], odom_q=q[1], rel_t=t[2], rel_q=q[2], linear=linear, angular=angular,
+        result,
+        t=t[0],
+        q=q[0],
+        odom_t=t[1],
+        odom_q=q[1],
+        rel_t=t[2],
+        rel_q=q[2],
+        linear=linear,
+        angular=angular,
         pose_covariance=base_pose_covariance(result.pose_covariance, result.q, ext),
         odom_covariance=base_odometry_covariance(result.odom_covariance, result.odom_q, ext),
         twist_covariance=transform_covariance(result.twist_covariance, ext.adjoint),

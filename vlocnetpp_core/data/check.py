@@ -33,14 +33,25 @@ SPLITS = ("train", "test")
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("dir", metavar="DIR", help="dataset folder (holding DeepLoc/, or a 7-Scenes scene folder)")
-    parser.add_argument("--format", choices=FORMATS, default=None, help="dataset format (default: detect from the layout)")
-    parser.add_argument("--split", choices=(*SPLITS, "all"), default="all", help="split to check (default: all present)")
-    parser.add_argument("--intrinsics", metavar="fx,fy,cx,cy", default=None, help="camera intrinsics at the dataset's image size")
     parser.add_argument(
-        "--quaternion-order", choices=("wxyz", "xyzw"), default="wxyz", help="DeepLoc poses.txt quaternion column order (default wxyz)"
+        "--format", choices=FORMATS, default=None, help="dataset format (default: detect from the layout)"
+    )
+    parser.add_argument(
+        "--split", choices=(*SPLITS, "all"), default="all", help="split to check (default: all present)"
+    )
+    parser.add_argument(
+        "--intrinsics", metavar="fx,fy,cx,cy", default=None, help="camera intrinsics at the dataset's image size"
+    )
+    parser.add_argument(
+        "--quaternion-order",
+        choices=("wxyz", "xyzw"),
+        default="wxyz",
+        help="DeepLoc poses.txt quaternion column order (default wxyz)",
     )
     parser.add_argument("--pairs", type=int, default=50, help="frame pairs sampled for the warp check (default 50)")
-    parser.add_argument("--label-frames", type=int, default=200, help="label images sampled for the class histogram (default 200)")
+    parser.add_argument(
+        "--label-frames", type=int, default=200, help="label images sampled for the class histogram (default 200)"
+    )
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of a report")
 
 
@@ -109,7 +120,9 @@ def class_histogram(index: DatasetIndex, max_frames: int = 200) -> tuple[dict[st
 def split_summary(index: DatasetIndex, max_pairs: int, max_label_frames: int) -> dict:
     """The per-split part of the ``data-info`` report."""
     t = np.array([r.t for r in index.records])
-    steps = np.concatenate([np.linalg.norm(np.diff(t[rng.start : rng.stop], axis=0), axis=1) for rng in index.sequences])
+    steps = np.concatenate(
+        [np.linalg.norm(np.diff(t[rng.start : rng.stop], axis=0), axis=1) for rng in index.sequences]
+    )
     first = index.load(0)
     out = {
         "frames": len(index),
@@ -132,7 +145,15 @@ def split_summary(index: DatasetIndex, max_pairs: int, max_label_frames: int) ->
     return out
 
 
-def dataset_info(path, format: str | None = None, splits=SPLITS, intrinsics=None, max_pairs: int = 50, max_label_frames: int = 200, **options) -> dict:
+def dataset_info(
+    path,
+    format: str | None = None,
+    splits=SPLITS,
+    intrinsics=None,
+    max_pairs: int = 50,
+    max_label_frames: int = 200,
+    **options,
+) -> dict:
     """The ``data-info --json`` object for the dataset at ``path``; splits not present are skipped."""
     fmt = format or detect_format(path)
     if fmt != "deeploc":
@@ -150,7 +171,9 @@ def dataset_info(path, format: str | None = None, splits=SPLITS, intrinsics=None
         "intrinsics_source": first.intrinsics_source,
         "splits": {s: split_summary(ix, max_pairs, max_label_frames) for s, ix in indices.items()},
     }
-    ratios = [(v["warp_consistency"], v["warp_pairs"]) for v in report["splits"].values() if v["warp_consistency"] is not None]
+    ratios = [
+        (v["warp_consistency"], v["warp_pairs"]) for v in report["splits"].values() if v["warp_consistency"] is not None
+    ]
     n = sum(k for _, k in ratios)
     report["warp_consistency"] = round(sum(r * k for r, k in ratios) / n, 4) if n else None
     report["warp_pairs"] = n
@@ -184,7 +207,9 @@ def format_report(report: dict) -> str:
         if r is None:
             lines.append("  warp consistency: not measured (needs consecutive frames with depth)")
         else:
-            lines.append(f"  warp consistency: {r:.3f} over {s['warp_pairs']} frame pairs (below 1 = poses, depth, intrinsics agree)")
+            lines.append(
+                f"  warp consistency: {r:.3f} over {s['warp_pairs']} frame pairs (below 1 = poses, depth, intrinsics agree)"
+            )
             if r > WARN_RATIO:
                 warnings.append(
                     f"warning: {split}: warping with the ground-truth poses and depth barely helps (ratio {r:.2f}). "

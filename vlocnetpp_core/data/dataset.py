@@ -25,7 +25,8 @@ def detect_format(path: str | Path) -> str:
     if (p / "TrainSplit.txt").is_file() or (p / "TestSplit.txt").is_file() or any(p.glob("seq-*/frame-*.color.png")):
         return "7scenes"
     raise DataError(
-        p, "unknown dataset layout: expected DeepLoc/{train,test}/LeftImages/ (DeepLoc) or TrainSplit.txt + seq-XX/ (7-Scenes)"
+        p,
+        "unknown dataset layout: expected DeepLoc/{train,test}/LeftImages/ (DeepLoc) or TrainSplit.txt + seq-XX/ (7-Scenes)",
     )
 
 
@@ -41,7 +42,13 @@ def available_splits(path: str | Path, format: str) -> list[str]:
     return [s for s, f in SPLIT_FILES.items() if (Path(path) / f).is_file()]
 
 
-def open_dataset(path: str | Path, format: str | None = None, split: str = "train", intrinsics: Intrinsics | str | None = None, **options) -> DatasetIndex:
+def open_dataset(
+    path: str | Path,
+    format: str | None = None,
+    split: str = "train",
+    intrinsics: Intrinsics | str | None = None,
+    **options,
+) -> DatasetIndex:
     """Index ``split`` of the dataset at ``path``; ``format`` ``"deeploc"`` / ``"7scenes"`` or None to detect.
 
     ``intrinsics``: an :class:`Intrinsics`, ``"fx,fy,cx,cy"`` for the dataset's image size, or None
@@ -75,7 +82,15 @@ class ClipDataset(torch.utils.data.Dataset):
     of 16 clips of two 224x128 frames saves collating 11 MB of zeros).
     """
 
-    def __init__(self, index: DatasetIndex, clip_len: int = 1, transform=None, stride: int = 1, depth: bool = True, labels: bool = True):
+    def __init__(
+        self,
+        index: DatasetIndex,
+        clip_len: int = 1,
+        transform=None,
+        stride: int = 1,
+        depth: bool = True,
+        labels: bool = True,
+    ):
         if clip_len < 1 or stride < 1:
             raise ValueError(f"clip_len and stride must be >= 1, got {clip_len}, {stride}")
         self.index = index
@@ -96,7 +111,9 @@ class ClipDataset(torch.utils.data.Dataset):
             t = np.array([r.t for r in self.index.records], dtype=np.float64)
             q = np.array([r.q for r in self.index.records], dtype=np.float64)
             idx = np.asarray(self.starts)[:, None] + self.stride * np.arange(T)[None, :]
-            rel_t[:, 1:], rel_q[:, 1:] = geometry.relative_pose(t[idx[:, :-1]], q[idx[:, :-1]], t[idx[:, 1:]], q[idx[:, 1:]])
+            rel_t[:, 1:], rel_q[:, 1:] = geometry.relative_pose(
+                t[idx[:, :-1]], q[idx[:, :-1]], t[idx[:, 1:]], q[idx[:, 1:]]
+            )
         return rel_t, rel_q
 
     def __len__(self) -> int:
@@ -116,12 +133,18 @@ class ClipDataset(torch.utils.data.Dataset):
 
     def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
         rng = np.random.default_rng(int(torch.randint(0, 2**62, ()).item()))
-        return clip_to_tensors(self.load_clip(i, rng), self.clip_indices(i), (self.rel_t[i], self.rel_q[i]),
-                               self.load_depth, self.load_labels)
+        return clip_to_tensors(
+            self.load_clip(i, rng),
+            self.clip_indices(i),
+            (self.rel_t[i], self.rel_q[i]),
+            self.load_depth,
+            self.load_labels,
+        )
 
 
-def clip_to_tensors(frames: list[Frame], indices: list[int], rel: tuple[np.ndarray, np.ndarray], depth: bool = True,
-                    labels: bool = True) -> dict[str, torch.Tensor]:
+def clip_to_tensors(
+    frames: list[Frame], indices: list[int], rel: tuple[np.ndarray, np.ndarray], depth: bool = True, labels: bool = True
+) -> dict[str, torch.Tensor]:
     """The tensor dict of :class:`ClipDataset` for already transformed ``frames`` and their relative poses ``rel``
     (``rel_t (T, 3)``, ``rel_q (T, 4)``: :meth:`ClipDataset._relative_poses`, mirrored here with mirrored frames);
     ``depth`` / ``labels``: with those keys."""
@@ -131,15 +154,24 @@ def clip_to_tensors(frames: list[Frame], indices: list[int], rel: tuple[np.ndarr
     h, w = frames[0].image.shape[:2]
     for f in frames:
         if f.image.shape[:2] != (h, w):
-            raise ValueError(f"frames of a clip differ in size ({f.frame_id}: {f.image.shape[:2]} vs {(h, w)}); use a transform with a fixed size")
+            raise ValueError(
+                f"frames of a clip differ in size ({f.frame_id}: {f.image.shape[:2]} vs {(h, w)}); use a transform with a fixed size"
+            )
     dense = {}
     if depth:
-        dense["depth"] = torch.from_numpy(np.stack([f.depth if f.depth is not None else np.zeros((h, w), np.float32) for f in frames]))[:, None].float()
+        dense["depth"] = torch.from_numpy(
+            np.stack([f.depth if f.depth is not None else np.zeros((h, w), np.float32) for f in frames])
+        )[:, None].float()
     if labels:
-        dense["labels"] = torch.from_numpy(np.stack([f.labels if f.labels is not None else np.full((h, w), IGNORE_INDEX, np.uint8)
-                                                     for f in frames])).long()
+        dense["labels"] = torch.from_numpy(
+            np.stack([f.labels if f.labels is not None else np.full((h, w), IGNORE_INDEX, np.uint8) for f in frames])
+        ).long()
     # (T, H, W, 3) uint8 -> (T, 3, H, W) float in [0, 1]: transposed and converted in one copy
-    image = torch.empty(len(frames), 3, h, w).copy_(torch.from_numpy(np.stack([f.image for f in frames])).permute(0, 3, 1, 2)).div_(255.0)
+    image = (
+        torch.empty(len(frames), 3, h, w)
+        .copy_(torch.from_numpy(np.stack([f.image for f in frames])).permute(0, 3, 1, 2))
+        .div_(255.0)
+    )
     return {
         "image": image,
         "t": torch.from_numpy(t).float(),

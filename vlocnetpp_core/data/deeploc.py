@@ -60,7 +60,9 @@ def find_deeploc_root(path: str | Path) -> tuple[Path, Path]:
         return p / "DeepLoc", p
     if any((p / s / "LeftImages").is_dir() for s in ("train", "test")):
         return p, p.parent
-    raise DataError(p, "not a DeepLoc dataset: expected DeepLoc/{train,test}/LeftImages/ (or {train,test}/LeftImages/ inside it)")
+    raise DataError(
+        p, "not a DeepLoc dataset: expected DeepLoc/{train,test}/LeftImages/ (or {train,test}/LeftImages/ inside it)"
+    )
 
 
 def _files_by_number(folder: Path, extensions: tuple[str, ...]) -> dict[int, Path]:
@@ -110,7 +112,9 @@ def read_poses(path: str | Path, quaternion_order: str = "wxyz") -> list[tuple[i
             try:
                 vals = np.array([float(v) for v in fields[1:]])
             except ValueError:
-                raise DataError(p, f"expected 7 numbers after the image name, got {' '.join(fields[1:])!r}", lineno) from None
+                raise DataError(
+                    p, f"expected 7 numbers after the image name, got {' '.join(fields[1:])!r}", lineno
+                ) from None
             n = frame_number(fields[0])
             if n is None:
                 raise DataError(p, f"image name {fields[0]!r} has no frame number", lineno)
@@ -121,7 +125,9 @@ def read_poses(path: str | Path, quaternion_order: str = "wxyz") -> list[tuple[i
                 q = q[[3, 0, 1, 2]]
             norm = float(np.linalg.norm(q))
             if not np.isfinite(vals).all() or not math.isfinite(norm) or norm < 1e-3:
-                raise DataError(p, f"pose is not finite or its quaternion cannot be normalised (norm {norm:.3g})", lineno)
+                raise DataError(
+                    p, f"pose is not finite or its quaternion cannot be normalised (norm {norm:.3g})", lineno
+                )
             seen[n] = lineno
             out.append((n, fields[0], t, q / norm))
     if not out:
@@ -135,7 +141,9 @@ MAX_JUMP_M = 5.0
 MAX_JUMP_DEG = 45.0
 
 
-def split_sequences(ids: np.ndarray, t: np.ndarray, q: np.ndarray, max_id_gap: int, max_jump_m: float, max_jump_deg: float) -> list[range]:
+def split_sequences(
+    ids: np.ndarray, t: np.ndarray, q: np.ndarray, max_id_gap: int, max_jump_m: float, max_jump_deg: float
+) -> list[range]:
     """Contiguous ranges of id-sorted frames; a new one starts at an id gap or an implausible pose jump."""
     if len(ids) == 0:
         return []
@@ -174,7 +182,14 @@ def read_deeploc(
     poses = read_poses(split_dir / "poses.txt", quaternion_order)
     labels = _files_by_number(split_dir / "labels", (".png",))
     depth_dir = next(
-        (d for d in (root / "DeepLoc_stereo" / split / "DepthImages", deeploc_dir / "DeepLoc_stereo" / split / "DepthImages") if d.is_dir()),
+        (
+            d
+            for d in (
+                root / "DeepLoc_stereo" / split / "DepthImages",
+                deeploc_dir / "DeepLoc_stereo" / split / "DepthImages",
+            )
+            if d.is_dir()
+        ),
         None,
     )
     depths = _files_by_number(depth_dir, imageio.DEPTH_EXTENSIONS) if depth_dir is not None else {}

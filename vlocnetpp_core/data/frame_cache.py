@@ -44,7 +44,9 @@ class FrameCache:
     ``load``, ``len``). ``depth`` / ``labels``: decode and keep those too (else the frames hold None).
     """
 
-    def __init__(self, index: DatasetIndex, size: tuple[int, int], depth: bool = True, labels: bool = True, progress: bool = True):
+    def __init__(
+        self, index: DatasetIndex, size: tuple[int, int], depth: bool = True, labels: bool = True, progress: bool = True
+    ):
         from tqdm import tqdm
 
         self.index, self.size = index, (int(size[0]), int(size[1]))
@@ -52,7 +54,9 @@ class FrameCache:
         self.depth, self.labels = depth and index.has_depth, labels and index.has_labels
         self.frames: list[Frame] = [
             resize_frame(index.load(i, self.depth, self.labels), *self.size)
-            for i in tqdm(range(len(index)), desc="decode frames", unit="frame", disable=(not progress) or None, file=sys.stderr)
+            for i in tqdm(
+                range(len(index)), desc="decode frames", unit="frame", disable=(not progress) or None, file=sys.stderr
+            )
         ]
 
     def __len__(self) -> int:

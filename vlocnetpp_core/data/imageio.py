@@ -54,7 +54,9 @@ def read_rgb(path: str | Path) -> np.ndarray:
 
 def _check_size(path: str | Path, arr: np.ndarray, shape: tuple[int, int] | None, what: str) -> None:
     if shape is not None and arr.shape[:2] != tuple(shape):
-        raise DataError(path, f"{what} is {arr.shape[1]}x{arr.shape[0]}, expected {shape[1]}x{shape[0]} like its colour image")
+        raise DataError(
+            path, f"{what} is {arr.shape[1]}x{arr.shape[0]}, expected {shape[1]}x{shape[0]} like its colour image"
+        )
 
 
 def read_labels(path: str | Path, shape: tuple[int, int] | None = None) -> np.ndarray:
@@ -64,11 +66,15 @@ def read_labels(path: str | Path, shape: tuple[int, int] | None = None) -> np.nd
         if lab.shape[2] >= 3 and np.array_equal(lab[..., 0], lab[..., 1]) and np.array_equal(lab[..., 0], lab[..., 2]):
             lab = lab[..., 0]  # a grey image saved as RGB
         else:
-            raise DataError(path, "expected a one-channel label image of class ids (labels_colorized/ is a preview, not ids)")
+            raise DataError(
+                path, "expected a one-channel label image of class ids (labels_colorized/ is a preview, not ids)"
+            )
     _check_size(path, lab, shape, "label image")
     bad = (lab >= NUM_CLASSES) & (lab != IGNORE_INDEX)
     if bad.any():
-        raise DataError(path, f"label id {int(lab[bad].max())} outside 0..{NUM_CLASSES - 1} (and not {IGNORE_INDEX} = ignore)")
+        raise DataError(
+            path, f"label id {int(lab[bad].max())} outside 0..{NUM_CLASSES - 1} (and not {IGNORE_INDEX} = ignore)"
+        )
     return lab.astype(np.uint8)
 
 

@@ -65,7 +65,9 @@ def read_pfm(path: str | Path) -> np.ndarray:
     channels = 1 if magic == b"Pf" else 3
     count = width * height * channels
     if len(data) - pos < 4 * count:
-        raise DataError(p, f"truncated PFM data: {len(data) - pos} bytes, expected {4 * count} for {width}x{height}x{channels}")
+        raise DataError(
+            p, f"truncated PFM data: {len(data) - pos} bytes, expected {4 * count} for {width}x{height}x{channels}"
+        )
     values = np.frombuffer(data, dtype="<f4" if scale < 0 else ">f4", count=count, offset=pos)
     shape = (height, width) if channels == 1 else (height, width, 3)
     return values.reshape(shape)[::-1].astype(np.float32)

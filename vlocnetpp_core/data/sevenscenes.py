@@ -70,7 +70,9 @@ def read_pose_matrix(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return t, q
 
 
-def read_sevenscenes(path: str | Path, split: str = "train", intrinsics: Intrinsics | str | None = None) -> DatasetIndex:
+def read_sevenscenes(
+    path: str | Path, split: str = "train", intrinsics: Intrinsics | str | None = None
+) -> DatasetIndex:
     """Index the ``split`` (``train`` / ``test``) of the 7-Scenes scene folder ``path``."""
     root = Path(path)
     if not root.is_dir():
@@ -111,5 +113,9 @@ def read_sevenscenes(path: str | Path, split: str = "train", intrinsics: Intrins
     h, w = imageio.read_rgb(records[0].image).shape[:2]
     K = resolve_intrinsics(intrinsics, SEVEN_SCENES_DEFAULT, w, h)
     source = "given" if intrinsics is not None else "default (7-Scenes focal 585, centre (320, 240))"
-    notes = ["depth is not registered to the colour camera: warping with it is approximate"] if any(r.depth for r in records) else []
+    notes = (
+        ["depth is not registered to the colour camera: warping with it is approximate"]
+        if any(r.depth for r in records)
+        else []
+    )
     return DatasetIndex("7scenes", root, split, records, sequences, K, source, notes)

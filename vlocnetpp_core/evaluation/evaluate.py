@@ -41,27 +41,56 @@ from vlocnetpp_core.evaluation.report import (
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--checkpoint", required=True, help="checkpoint (NAME.safetensors or NAME; the NAME.json sidecar next to it)")
+    p.add_argument(
+        "--checkpoint", required=True, help="checkpoint (NAME.safetensors or NAME; the NAME.json sidecar next to it)"
+    )
     p.add_argument("--data", required=True, help="dataset folder (DeepLoc layout or 7-Scenes)")
     p.add_argument("--format", choices=FORMATS, default=None, help="dataset format (default: detected from the layout)")
     p.add_argument("--split", default="test", help="split to evaluate (default: test)")
-    p.add_argument("--intrinsics", default=None, metavar="FX,FY,CX,CY", help="camera intrinsics at the dataset image size (default: the reader's)")
-    add_report_arguments(p, "retrieval baseline reference: a dataset folder (its training images) or a .npz from ReferenceSet.save "
-                            "(default: the train split of --data when another split is evaluated)")
-    p.add_argument("--map", default=None, metavar="MAP", help="keyframe map (vlocnetpp map build) to refine the network's pose against; "
-                   "adds the refined row (overall.pose_refined in the JSON) and the structure-based baseline (no network)")
-    p.add_argument("--refine-every", type=int, default=1, metavar="K", help="with --map: refine every K-th frame, propagate "
-                   "the refined pose with the odometry in between (default 1: every frame)")
-    p.add_argument("--use-depth", action="store_true", help="give the dataset depth to the localizer (as the node's aligned depth input) instead of the predicted depth")
-    p.add_argument("--max-frames", type=int, default=None, metavar="N", help="evaluate at most the first N frames of each sequence")
+    p.add_argument(
+        "--intrinsics",
+        default=None,
+        metavar="FX,FY,CX,CY",
+        help="camera intrinsics at the dataset image size (default: the reader's)",
+    )
+    add_report_arguments(
+        p,
+        "retrieval baseline reference: a dataset folder (its training images) or a .npz from ReferenceSet.save "
+        "(default: the train split of --data when another split is evaluated)",
+    )
+    p.add_argument(
+        "--map",
+        default=None,
+        metavar="MAP",
+        help="keyframe map (vlocnetpp map build) to refine the network's pose against; "
+        "adds the refined row (overall.pose_refined in the JSON) and the structure-based baseline (no network)",
+    )
+    p.add_argument(
+        "--refine-every",
+        type=int,
+        default=1,
+        metavar="K",
+        help="with --map: refine every K-th frame, propagate "
+        "the refined pose with the odometry in between (default 1: every frame)",
+    )
+    p.add_argument(
+        "--use-depth",
+        action="store_true",
+        help="give the dataset depth to the localizer (as the node's aligned depth input) instead of the predicted depth",
+    )
+    p.add_argument(
+        "--max-frames", type=int, default=None, metavar="N", help="evaluate at most the first N frames of each sequence"
+    )
     p.add_argument("--device", default="cpu", help="torch device (default cpu)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def _check_mask(frame, mask: np.ndarray) -> None:
     if mask.shape != frame.image.shape[:2]:
-        raise UserError(f"the localizer returned a {mask.shape[1]}x{mask.shape[0]} mask for the "
-                        f"{frame.image.shape[1]}x{frame.image.shape[0]} image {frame.frame_id}")
+        raise UserError(
+            f"the localizer returned a {mask.shape[1]}x{mask.shape[0]} mask for the "
+            f"{frame.image.shape[1]}x{frame.image.shape[0]} image {frame.frame_id}"
+        )
 
 
 @dataclass
@@ -78,8 +107,16 @@ class LocalizerRun:
     structure: list[tuple[np.ndarray, np.ndarray]] | None = None
 
 
-def run_localizer(localizer, index, max_frames: int | None = None, samples: int = 3, use_depth: bool = False,
-                  progress: bool = True, describe: bool = False, structure=None) -> LocalizerRun:
+def run_localizer(
+    localizer,
+    index,
+    max_frames: int | None = None,
+    samples: int = 3,
+    use_depth: bool = False,
+    progress: bool = True,
+    describe: bool = False,
+    structure=None,
+) -> LocalizerRun:
     """Stream every sequence of ``index`` (a ``DatasetIndex``) through ``localizer`` (a ``Localizer``).
 
     The temporal state is reset at each sequence start. Frames the localizer rejects
@@ -95,9 +132,16 @@ def run_localizer(localizer, index, max_frames: int | None = None, samples: int 
     from vlocnetpp_core.mapping.evaluation import RefinedTrack
 
     ranges = [r if max_frames is None else r[:max_frames] for r in index.sequences]
-    bar = tqdm(total=sum(len(r) for r in ranges), unit="frame", desc="evaluate", disable=not progress, dynamic_ncols=True)
-    run = LocalizerRun([], {}, [] if describe else None, [] if localizer.refinement is not None else None,
-                       [] if structure is not None else None)
+    bar = tqdm(
+        total=sum(len(r) for r in ranges), unit="frame", desc="evaluate", disable=not progress, dynamic_ncols=True
+    )
+    run = LocalizerRun(
+        [],
+        {},
+        [] if describe else None,
+        [] if localizer.refinement is not None else None,
+        [] if structure is not None else None,
+    )
     try:
         for rng in ranges:
             if len(rng) == 0:
@@ -112,7 +156,13 @@ def run_localizer(localizer, index, max_frames: int | None = None, samples: int 
                 frame = index.load(i, depth=use_depth)
                 bar.update(1)
                 try:
-                    out = localizer.step(frame.image, "rgb8", frame.stamp, depth=frame.depth if use_depth else None, intrinsics=frame.intrinsics)
+                    out = localizer.step(
+                        frame.image,
+                        "rgb8",
+                        frame.stamp,
+                        depth=frame.depth if use_depth else None,
+                        intrinsics=frame.intrinsics,
+                    )
                 except FrameError as err:
                     run.rejected[err.reason] = run.rejected.get(err.reason, 0) + 1
                     continue
@@ -121,7 +171,16 @@ def run_localizer(localizer, index, max_frames: int | None = None, samples: int 
                 if structure is not None:
                     located.append(structure.locate_image(frame.image, frame.intrinsics, described[-1])[:2])
                 track.add(out)
-                recorder.add(frame.stamp, frame.t, frame.q, out.network_t, out.network_q, out.rel_t, out.rel_q, out.seconds * 1000.0)
+                recorder.add(
+                    frame.stamp,
+                    frame.t,
+                    frame.q,
+                    out.network_t,
+                    out.network_q,
+                    out.rel_t,
+                    out.rel_q,
+                    out.seconds * 1000.0,
+                )
                 if out.mask is None:  # a pose-only model
                     continue
                 _check_mask(frame, out.mask)
@@ -158,18 +217,32 @@ def run(args: argparse.Namespace) -> int:
     if len(index) == 0:
         raise UserError(f"{args.data}: split {args.split!r} has no frames")
     reference = _reference(args, index.format)
-    localizer = Localizer.from_checkpoint(args.checkpoint, device=args.device, map_path=args.map, refine_every=args.refine_every)
+    localizer = Localizer.from_checkpoint(
+        args.checkpoint, device=args.device, map_path=args.map, refine_every=args.refine_every
+    )
     structure = None
     if args.map is not None:
         from vlocnetpp_core.mapping.refiner import Refiner
 
         structure = Refiner(localizer.refinement.refiner.map)
-    run = run_localizer(localizer, index, args.max_frames, args.samples, args.use_depth, progress=not args.no_progress,
-                        describe=reference is not None, structure=structure)
+    run = run_localizer(
+        localizer,
+        index,
+        args.max_frames,
+        args.samples,
+        args.use_depth,
+        progress=not args.no_progress,
+        describe=reference is not None,
+        structure=structure,
+    )
     results, rejected = run.results, run.rejected
     if not results:
         raise UserError(f"{args.checkpoint}: the localizer rejected every frame ({rejected})")
-    class_names = localizer.class_names if len(localizer.class_names) == localizer.num_classes else CLASS_NAMES[: localizer.num_classes]
+    class_names = (
+        localizer.class_names
+        if len(localizer.class_names) == localizer.num_classes
+        else CLASS_NAMES[: localizer.num_classes]
+    )
 
     report = evaluate_sequences(results, thresholds, lengths, class_names)
     if not localizer.has_segmentation:
@@ -181,16 +254,27 @@ def run(args: argparse.Namespace) -> int:
         add_structure_baseline(report, results, run.structure, structure.map.source, len(structure.map), thresholds)
     tasks = localizer.model.config.tasks
     untrained = untrained_tasks(localizer.meta, tasks)
-    report["meta"] = {"checkpoint": str(args.checkpoint), "data": str(args.data), "split": args.split, "tasks": list(tasks),
-                      "untrained_tasks": untrained}
+    report["meta"] = {
+        "checkpoint": str(args.checkpoint),
+        "data": str(args.data),
+        "split": args.split,
+        "tasks": list(tasks),
+        "untrained_tasks": untrained,
+    }
     print(format_report(report, {r.name: len(r.stamps) for r in results}))
     if reference is None:
-        print(f"note: no retrieval baseline: --data has no other split than {args.split!r} to look frames up in; give --reference")
+        print(
+            f"note: no retrieval baseline: --data has no other split than {args.split!r} to look frames up in; give --reference"
+        )
     if untrained:
-        print(f"note: {args.checkpoint} was not trained for {', '.join(TASK_NAMES[t] for t in untrained)} (stage "
-              f"{localizer.meta['training'].get('stage')} and its --init checkpoints): those columns are an untrained network's")
+        print(
+            f"note: {args.checkpoint} was not trained for {', '.join(TASK_NAMES[t] for t in untrained)} (stage "
+            f"{localizer.meta['training'].get('stage')} and its --init checkpoints): those columns are an untrained network's"
+        )
     if rejected:
-        print("frames rejected by the localizer (left out): " + ", ".join(f"{k} {v}" for k, v in sorted(rejected.items())))
+        print(
+            "frames rejected by the localizer (left out): " + ", ".join(f"{k} {v}" for k, v in sorted(rejected.items()))
+        )
     write_outputs(report, results, class_names, args.json, args.trajectories, args.plots)
     return 0
 

@@ -43,7 +43,9 @@ DEFAULT_LENGTH_FRACTIONS: tuple[float, ...] = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7
 # --------------------------------------------------------------------------- global pose
 
 
-def pose_errors(t_pred: np.ndarray, q_pred: np.ndarray, t_true: np.ndarray, q_true: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def pose_errors(
+    t_pred: np.ndarray, q_pred: np.ndarray, t_true: np.ndarray, q_true: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Per-frame translation error (m, Euclidean) and rotation error (deg, ``2 acos |<q1, q2>|``), each ``(N,)``."""
     dt = np.linalg.norm(np.asarray(t_pred, np.float64) - np.asarray(t_true, np.float64), axis=-1)
     q1 = np.asarray(q_pred, np.float64)
@@ -60,7 +62,9 @@ def accuracy_key(threshold_m: float, threshold_deg: float) -> str:
     return f"accuracy_{dist}_{threshold_deg:g}deg"
 
 
-def pose_metrics(trans_err: np.ndarray, rot_err: np.ndarray, thresholds: Sequence[tuple[float, float]] = DEFAULT_THRESHOLDS) -> dict:
+def pose_metrics(
+    trans_err: np.ndarray, rot_err: np.ndarray, thresholds: Sequence[tuple[float, float]] = DEFAULT_THRESHOLDS
+) -> dict:
     """``median_translation_m``, ``median_rotation_deg`` and one ``accuracy_*`` share per ``(metres, degrees)`` threshold."""
     trans_err = np.asarray(trans_err, np.float64)
     rot_err = np.asarray(rot_err, np.float64)
@@ -77,7 +81,9 @@ def pose_metrics(trans_err: np.ndarray, rot_err: np.ndarray, thresholds: Sequenc
 # --------------------------------------------------------------------------- odometry (KITTI-style)
 
 
-def default_odometry_lengths(path_lengths_m: Sequence[float], fractions: Sequence[float] = DEFAULT_LENGTH_FRACTIONS) -> list[float]:
+def default_odometry_lengths(
+    path_lengths_m: Sequence[float], fractions: Sequence[float] = DEFAULT_LENGTH_FRACTIONS
+) -> list[float]:
     """Segment lengths: ``fractions`` of the shortest positive path length, to 3 significant digits."""
     positive = [p for p in path_lengths_m if p > 0]
     if not positive:
@@ -86,7 +92,9 @@ def default_odometry_lengths(path_lengths_m: Sequence[float], fractions: Sequenc
     return [float(f"{f * shortest:.3g}") for f in fractions]
 
 
-def kitti_segment_errors(T_true: np.ndarray, T_pred: np.ndarray, lengths_m: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
+def kitti_segment_errors(
+    T_true: np.ndarray, T_pred: np.ndarray, lengths_m: Sequence[float]
+) -> tuple[np.ndarray, np.ndarray]:
     """Per-segment errors of the KITTI odometry devkit, every frame a start (see module docstring).
 
     ``T_true``, ``T_pred``: ``(N, 4, 4)`` poses. Returns translation error per metre (ratio) and
@@ -124,7 +132,9 @@ def step_ratios(true_t: np.ndarray, rel_t: np.ndarray, min_step_m: float = MIN_S
     return np.linalg.norm(rel_t[1:], axis=1)[moved] / true_step[moved]
 
 
-def odometry_metrics(t_err: np.ndarray, r_err: np.ndarray, lengths_m: Sequence[float], ratios: np.ndarray | None = None) -> dict:
+def odometry_metrics(
+    t_err: np.ndarray, r_err: np.ndarray, lengths_m: Sequence[float], ratios: np.ndarray | None = None
+) -> dict:
     """``translation_error_percent``, ``rotation_error_deg_per_m`` (means over segments), ``lengths_m`` and
     ``step_scale`` (median of :func:`step_ratios`; None without pairs)."""
     empty = len(t_err) == 0
@@ -139,7 +149,9 @@ def odometry_metrics(t_err: np.ndarray, r_err: np.ndarray, lengths_m: Sequence[f
 # --------------------------------------------------------------------------- segmentation
 
 
-def confusion_matrix(labels_true: np.ndarray, labels_pred: np.ndarray, num_classes: int, ignore_index: int = IGNORE_INDEX) -> np.ndarray:
+def confusion_matrix(
+    labels_true: np.ndarray, labels_pred: np.ndarray, num_classes: int, ignore_index: int = IGNORE_INDEX
+) -> np.ndarray:
     """``(C, C)`` int64 counts, rows true class, columns predicted; pixels labelled ``ignore_index`` are skipped.
 
     Raises ``ValueError`` for different shapes or ids outside ``0..C-1`` (other than ``ignore_index``).
@@ -152,7 +164,9 @@ def confusion_matrix(labels_true: np.ndarray, labels_pred: np.ndarray, num_class
     y, p = y[keep], p[keep]
     for name, v in (("true", y), ("predicted", p)):
         if v.size and (v.min() < 0 or v.max() >= num_classes):
-            raise ValueError(f"{name} labels outside 0..{num_classes - 1}: {sorted(set(v[(v < 0) | (v >= num_classes)].tolist()))[:5]}")
+            raise ValueError(
+                f"{name} labels outside 0..{num_classes - 1}: {sorted(set(v[(v < 0) | (v >= num_classes)].tolist()))[:5]}"
+            )
     return np.bincount(y * num_classes + p, minlength=num_classes * num_classes).reshape(num_classes, num_classes)
 
 
@@ -254,14 +268,18 @@ class SequenceRecorder:
     def __init__(self, name: str, num_classes: int = len(CLASS_NAMES)):
         self.name = name
         self.num_classes = num_classes
-        self._rows: dict[str, list] = {k: [] for k in ("stamps", "true_t", "true_q", "pred_t", "pred_q", "rel_t", "rel_q", "ms")}
+        self._rows: dict[str, list] = {
+            k: [] for k in ("stamps", "true_t", "true_q", "pred_t", "pred_q", "rel_t", "rel_q", "ms")
+        }
         self._confusion: np.ndarray | None = None
         self._samples: list = []
 
     def __len__(self) -> int:
         return len(self._rows["stamps"])
 
-    def add(self, stamp: float, true_t, true_q, pred_t, pred_q, rel_t=None, rel_q=None, ms: float | None = None) -> None:
+    def add(
+        self, stamp: float, true_t, true_q, pred_t, pred_q, rel_t=None, rel_q=None, ms: float | None = None
+    ) -> None:
         """One frame: ground-truth and predicted global pose, predicted relative pose (None on the first frame is fine)."""
         identity = rel_t is None and len(self) == 0
         rows = self._rows
@@ -279,7 +297,9 @@ class SequenceRecorder:
 
     def add_sample(self, image: np.ndarray, labels_pred: np.ndarray, labels_true: np.ndarray | None) -> None:
         """Keep a frame for the segmentation strip plot."""
-        self._samples.append((np.asarray(image), np.asarray(labels_pred), None if labels_true is None else np.asarray(labels_true)))
+        self._samples.append(
+            (np.asarray(image), np.asarray(labels_pred), None if labels_true is None else np.asarray(labels_true))
+        )
 
     def result(self) -> SequenceResult:
         rows = self._rows
@@ -335,7 +355,14 @@ def evaluate_sequences(
             "segmentation": segmentation_metrics(r.confusion, class_names),
             "timing": timing_metrics(r.ms),
         }
-        for key, value in (("trans", trans), ("rot", rot), ("t_seg", t_seg), ("r_seg", r_seg), ("steps", steps), ("ms", r.ms)):
+        for key, value in (
+            ("trans", trans),
+            ("rot", rot),
+            ("t_seg", t_seg),
+            ("r_seg", r_seg),
+            ("steps", steps),
+            ("ms", r.ms),
+        ):
             if value is not None:
                 pooled[key].append(value)
         if r.confusion is not None:

@@ -42,7 +42,13 @@ def top_down_axes(points: np.ndarray) -> tuple[int, int]:
     return a, b
 
 
-def plot_trajectories(path: str | Path, ground_truth: Trajectory, global_pose: Trajectory, odometry: Trajectory | None = None, title: str = "") -> Path:
+def plot_trajectories(
+    path: str | Path,
+    ground_truth: Trajectory,
+    global_pose: Trajectory,
+    odometry: Trajectory | None = None,
+    title: str = "",
+) -> Path:
     """Top-down view (see :func:`top_down_axes`) of the true, global-pose and odometry positions."""
     a, b = top_down_axes(ground_truth.t)
     fig = Figure(figsize=(6, 6))
@@ -86,7 +92,9 @@ def plot_errors(path: str | Path, result: SequenceResult, title: str = "") -> Pa
     return _save(fig, path)
 
 
-def plot_confusion(path: str | Path, confusion: np.ndarray, class_names: Sequence[str] = CLASS_NAMES, title: str = "") -> Path:
+def plot_confusion(
+    path: str | Path, confusion: np.ndarray, class_names: Sequence[str] = CLASS_NAMES, title: str = ""
+) -> Path:
     """Row-normalised confusion matrix (rows true, columns predicted) with the share in each cell."""
     conf = np.asarray(confusion, np.float64)
     rows = conf.sum(1, keepdims=True)
@@ -98,7 +106,15 @@ def plot_confusion(path: str | Path, confusion: np.ndarray, class_names: Sequenc
     for i in range(n):
         for j in range(n):
             if conf[i, j] > 0:
-                ax.text(j, i, f"{norm[i, j]:.2f}", ha="center", va="center", fontsize=7, color="white" if norm[i, j] > 0.5 else "black")
+                ax.text(
+                    j,
+                    i,
+                    f"{norm[i, j]:.2f}",
+                    ha="center",
+                    va="center",
+                    fontsize=7,
+                    color="white" if norm[i, j] > 0.5 else "black",
+                )
     ax.set_xticks(range(n), class_names, rotation=45, ha="right", fontsize=8)
     ax.set_yticks(range(n), class_names, fontsize=8)
     ax.set_xlabel("predicted")
@@ -109,7 +125,9 @@ def plot_confusion(path: str | Path, confusion: np.ndarray, class_names: Sequenc
     return _save(fig, path)
 
 
-def plot_segmentation_strip(path: str | Path, samples: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray | None]], title: str = "") -> Path:
+def plot_segmentation_strip(
+    path: str | Path, samples: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray | None]], title: str = ""
+) -> Path:
     """One row per sample: input image, predicted and true class ids in ``classes.CLASS_COLORS``."""
     if not samples:
         raise ValueError("no samples to plot")
@@ -131,7 +149,9 @@ def plot_segmentation_strip(path: str | Path, samples: Sequence[tuple[np.ndarray
     return _save(fig, path)
 
 
-def write_plots(folder: str | Path, results: Sequence[SequenceResult], class_names: Sequence[str] = CLASS_NAMES) -> list[Path]:
+def write_plots(
+    folder: str | Path, results: Sequence[SequenceResult], class_names: Sequence[str] = CLASS_NAMES
+) -> list[Path]:
     """All plots of an evaluation: per sequence ``<seq>/trajectory.png``, ``errors.png``,
     ``confusion.png`` and ``segmentation.png`` (when it has labels / samples), and the overall
     ``confusion.png``. Returns the paths written."""
@@ -141,13 +161,23 @@ def write_plots(folder: str | Path, results: Sequence[SequenceResult], class_nam
     for r in results:
         sub = folder / r.name
         if len(r.stamps):
-            written.append(plot_trajectories(sub / "trajectory.png", r.ground_truth(), r.global_pose(), r.odometry(), f"{r.name}: top-down"))
+            written.append(
+                plot_trajectories(
+                    sub / "trajectory.png", r.ground_truth(), r.global_pose(), r.odometry(), f"{r.name}: top-down"
+                )
+            )
             written.append(plot_errors(sub / "errors.png", r, f"{r.name}: error over time"))
         if r.confusion is not None:
-            written.append(plot_confusion(sub / "confusion.png", r.confusion, class_names, f"{r.name}: confusion (rows normalised)"))
+            written.append(
+                plot_confusion(
+                    sub / "confusion.png", r.confusion, class_names, f"{r.name}: confusion (rows normalised)"
+                )
+            )
             total = r.confusion if total is None else total + r.confusion
         if r.samples:
             written.append(plot_segmentation_strip(sub / "segmentation.png", r.samples, f"{r.name}: segmentation"))
     if total is not None:
-        written.append(plot_confusion(folder / "confusion.png", total, class_names, "all sequences: confusion (rows normalised)"))
+        written.append(
+            plot_confusion(folder / "confusion.png", total, class_names, "all sequences: confusion (rows normalised)")
+        )
     return written

@@ -24,7 +24,9 @@ from vlocnetpp_core.errors import UserError
 from vlocnetpp_core.evaluation.metrics import DEFAULT_THRESHOLDS, SequenceResult, accuracy_key, evaluate_sequences
 
 BASELINE_NAME = "retrieval"
-BASELINE_METHOD = "pose of the nearest reference image (gradient thumbnails, cosine similarity; vlocnetpp_core.evaluation.retrieval)"
+BASELINE_METHOD = (
+    "pose of the nearest reference image (gradient thumbnails, cosine similarity; vlocnetpp_core.evaluation.retrieval)"
+)
 
 
 # --------------------------------------------------------------------------- flags
@@ -33,13 +35,43 @@ BASELINE_METHOD = "pose of the nearest reference image (gradient thumbnails, cos
 def add_report_arguments(p: argparse.ArgumentParser, reference_help: str) -> None:
     """The output, threshold and baseline flags common to ``evaluate`` and ``evaluate-bag``."""
     p.add_argument("--json", default=None, metavar="OUT", help="write the metrics as JSON to OUT")
-    p.add_argument("--trajectories", default=None, metavar="DIR", help="write TUM trajectories per sequence (global_pose.tum, odometry.tum, ground_truth.tum)")
-    p.add_argument("--plots", default=None, metavar="DIR", help="write PNG plots (trajectories, errors, confusion matrix, segmentation strip)")
-    p.add_argument("--threshold-m", type=float, default=0.5, help="translation threshold of a further pose accuracy (default 0.5 m; 5 cm / 5 deg and 0.5 m / 5 deg are always reported)")
-    p.add_argument("--threshold-deg", type=float, default=5.0, help="rotation threshold of that further pose accuracy (default 5 deg)")
-    p.add_argument("--odometry-lengths", default=None, metavar="L1,L2,...",
-                   help="KITTI-style segment lengths in metres (default: 10%%..80%% of the shortest sequence's path)")
-    p.add_argument("--samples", type=int, default=3, metavar="K", help="frames per sequence in the segmentation strip plot (default 3)")
+    p.add_argument(
+        "--trajectories",
+        default=None,
+        metavar="DIR",
+        help="write TUM trajectories per sequence (global_pose.tum, odometry.tum, ground_truth.tum)",
+    )
+    p.add_argument(
+        "--plots",
+        default=None,
+        metavar="DIR",
+        help="write PNG plots (trajectories, errors, confusion matrix, segmentation strip)",
+    )
+    p.add_argument(
+        "--threshold-m",
+        type=float,
+        default=0.5,
+        help="translation threshold of a further pose accuracy (default 0.5 m; 5 cm / 5 deg and 0.5 m / 5 deg are always reported)",
+    )
+    p.add_argument(
+        "--threshold-deg",
+        type=float,
+        default=5.0,
+        help="rotation threshold of that further pose accuracy (default 5 deg)",
+    )
+    p.add_argument(
+        "--odometry-lengths",
+        default=None,
+        metavar="L1,L2,...",
+        help="KITTI-style segment lengths in metres (default: 10%%..80%% of the shortest sequence's path)",
+    )
+    p.add_argument(
+        "--samples",
+        type=int,
+        default=3,
+        metavar="K",
+        help="frames per sequence in the segmentation strip plot (default 3)",
+    )
     p.add_argument("--reference", default=None, metavar="DIR|FILE.npz", help=reference_help)
 
 
@@ -112,8 +144,13 @@ def without_segmentation(report: dict, note: str) -> dict:
 # --------------------------------------------------------------------------- baseline
 
 
-def add_baseline(report: dict, results: Sequence[SequenceResult], descriptors: Sequence[np.ndarray], reference,
-                 thresholds: Sequence[tuple[float, float]] = DEFAULT_THRESHOLDS) -> dict:
+def add_baseline(
+    report: dict,
+    results: Sequence[SequenceResult],
+    descriptors: Sequence[np.ndarray],
+    reference,
+    thresholds: Sequence[tuple[float, float]] = DEFAULT_THRESHOLDS,
+) -> dict:
     """Score the retrieval baseline (``reference``: a :class:`~vlocnetpp_core.evaluation.retrieval.ReferenceSet`) on the
     frames of ``results`` (``descriptors[k] (N_k, D)``) and store it as ``report["baseline"]``."""
     from vlocnetpp_core.evaluation.retrieval import retrieval_results
@@ -153,9 +190,11 @@ def baseline_verdict(report: dict) -> str | None:
         verdict = f"the network beats retrieval in {'translation' if beats['translation'] else 'rotation'} only"
     else:
         verdict = "the network does NOT beat retrieval"
-    return (f"{verdict}: median {_num(net['median_translation_m'], '.3f')} m / {_num(net['median_rotation_deg'], '.2f')} deg against "
-            f"{_num(ref['median_translation_m'], '.3f')} m / {_num(ref['median_rotation_deg'], '.2f')} deg "
-            f"(nearest of {base['reference_frames']} reference images of {base['reference']})")
+    return (
+        f"{verdict}: median {_num(net['median_translation_m'], '.3f')} m / {_num(net['median_rotation_deg'], '.2f')} deg against "
+        f"{_num(ref['median_translation_m'], '.3f')} m / {_num(ref['median_rotation_deg'], '.2f')} deg "
+        f"(nearest of {base['reference_frames']} reference images of {base['reference']})"
+    )
 
 
 # --------------------------------------------------------------------------- table
@@ -180,8 +219,11 @@ def format_report(report: dict, frames: dict[str, int] | None = None) -> str:
     headers += [k.removeprefix("accuracy_").replace("_", "/") + " [%]" for k in acc_keys]
     headers += ["VO t [%]", "VO R [deg/m]", "VO scale", *(["mIoU [%]", "pix acc [%]"] if has_seg else []), "ms/frame"]
     frames = frames or {}
-    empty = {"odometry": {"translation_error_percent": None, "rotation_error_deg_per_m": None, "step_scale": None},
-             "segmentation": {"miou": None, "pixel_accuracy": None}, "timing": {"mean_ms": None}}
+    empty = {
+        "odometry": {"translation_error_percent": None, "rotation_error_deg_per_m": None, "step_scale": None},
+        "segmentation": {"miou": None, "pixel_accuracy": None},
+        "timing": {"mean_ms": None},
+    }
 
     def row(name: str, part: dict, n: int | None) -> list[str]:
         part = {**empty, **part}
@@ -211,7 +253,13 @@ def format_report(report: dict, frames: dict[str, int] | None = None) -> str:
     fmt = "  ".join(f"{{:<{w}}}" if c == 0 else f"{{:>{w}}}" for c, w in enumerate(widths))
     rule = "  ".join("-" * w for w in widths)
     n_seq = len(report["per_sequence"])
-    lines = [fmt.format(*headers), rule, *[fmt.format(*r) for r in rows[:n_seq]], rule, *[fmt.format(*r) for r in rows[n_seq:]]]
+    lines = [
+        fmt.format(*headers),
+        rule,
+        *[fmt.format(*r) for r in rows[:n_seq]],
+        rule,
+        *[fmt.format(*r) for r in rows[n_seq:]],
+    ]
     verdict = baseline_verdict(report)
     if verdict:
         lines.append(verdict)
@@ -220,7 +268,9 @@ def format_report(report: dict, frames: dict[str, int] | None = None) -> str:
 
         lines += refinement_lines(report)
     lengths = overall["odometry"]["lengths_m"]
-    lines.append(f"odometry segment lengths [m]: {', '.join(f'{v:g}' for v in lengths) if lengths else '- (sequences too short)'}")
+    lines.append(
+        f"odometry segment lengths [m]: {', '.join(f'{v:g}' for v in lengths) if lengths else '- (sequences too short)'}"
+    )
     iou = {k: v for k, v in overall["segmentation"]["iou"].items() if v is not None} if has_seg else {}
     if iou:
         lines.append("IoU [%] (overall): " + ", ".join(f"{k} {100 * v:.1f}" for k, v in iou.items()))
@@ -251,15 +301,25 @@ def write_trajectories(folder: str | Path, results: Iterable[SequenceResult]) ->
     written = []
     for r in results:
         sub = Path(folder) / r.name
-        for name, traj in (("ground_truth", r.ground_truth()), ("global_pose", r.global_pose()), ("odometry", r.odometry())):
+        for name, traj in (
+            ("ground_truth", r.ground_truth()),
+            ("global_pose", r.global_pose()),
+            ("odometry", r.odometry()),
+        ):
             if traj is not None:
                 write_tum(sub / f"{name}.tum", traj)
                 written.append(sub / f"{name}.tum")
     return written
 
 
-def write_outputs(report: dict, results: list[SequenceResult], class_names: Sequence[str], json_path: str | Path | None = None,
-                  trajectories: str | Path | None = None, plots: str | Path | None = None) -> None:
+def write_outputs(
+    report: dict,
+    results: list[SequenceResult],
+    class_names: Sequence[str],
+    json_path: str | Path | None = None,
+    trajectories: str | Path | None = None,
+    plots: str | Path | None = None,
+) -> None:
     """Write the report as JSON, the TUM trajectories and the plots, where asked, and say where they went."""
     if json_path:
         write_json(json_path, report)

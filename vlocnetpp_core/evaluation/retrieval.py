@@ -85,7 +85,9 @@ class ReferenceSet:
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(f".{path.name}.tmp.npz")
-        np.savez_compressed(tmp, descriptors=self.descriptors.astype(np.float16), t=self.t, q=self.q, source=np.array(self.source))
+        np.savez_compressed(
+            tmp, descriptors=self.descriptors.astype(np.float16), t=self.t, q=self.q, source=np.array(self.source)
+        )
         os.replace(tmp, path)
         return path
 
@@ -120,15 +122,21 @@ class ReferenceSet:
         """One reference holding every image of ``sets`` (e.g. the training splits of several datasets)."""
         if not sets:
             raise ValueError(f"reference set {source!r} has no images")
-        return cls(np.concatenate([r.descriptors for r in sets]), np.concatenate([r.t for r in sets]),
-                   np.concatenate([r.q for r in sets]), source or "; ".join(r.source for r in sets))
+        return cls(
+            np.concatenate([r.descriptors for r in sets]),
+            np.concatenate([r.t for r in sets]),
+            np.concatenate([r.q for r in sets]),
+            source or "; ".join(r.source for r in sets),
+        )
 
     @classmethod
     def from_dataset(cls, index, progress: bool = False) -> ReferenceSet:
         """Every frame of a ``DatasetIndex`` (e.g. the training split the network learned from)."""
         from tqdm import tqdm
 
-        frames = tqdm(range(len(index)), desc="retrieval reference", unit="frame", disable=not progress, dynamic_ncols=True)
+        frames = tqdm(
+            range(len(index)), desc="retrieval reference", unit="frame", disable=not progress, dynamic_ncols=True
+        )
         source = f"{index.root} ({index.split})"
         loaded = (index.load(i, depth=False, labels=False) for i in frames)  # the images alone
         return cls.from_images(((f.image, f.t, f.q) for f in loaded), source)
@@ -140,7 +148,9 @@ def reference_of(checkpoint: str | Path) -> Path:
     return p.with_name(p.name.removesuffix(".safetensors") + ".reference.npz")
 
 
-def open_reference(path: str | Path, format: str | None = None, split: str = "train", progress: bool = False) -> ReferenceSet:
+def open_reference(
+    path: str | Path, format: str | None = None, split: str = "train", progress: bool = False
+) -> ReferenceSet:
     """The reference set at ``path``: a file written by :meth:`ReferenceSet.save` (``.npz``), or a dataset
     folder, whose ``split`` (default the training images) is described."""
     from vlocnetpp_core.data import open_dataset

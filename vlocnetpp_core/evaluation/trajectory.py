@@ -108,7 +108,9 @@ def read_tum(path: str | Path) -> Trajectory:
     return Trajectory(data[:, 0], data[:, 1:4], data[:, [7, 4, 5, 6]])
 
 
-def accumulate_odometry(t0: np.ndarray, q0: np.ndarray, rel_t: np.ndarray, rel_q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def accumulate_odometry(
+    t0: np.ndarray, q0: np.ndarray, rel_t: np.ndarray, rel_q: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Chain relative poses: ``T_0 = (t0, q0)``, ``T_k = T_{k-1} T_rel,k``.
 
     ``rel_t (N, 3)``, ``rel_q (N, 4)`` hold ``T_rel,k = T_{k-1}^{-1} T_k`` for frame ``k``; row 0
@@ -122,7 +124,9 @@ def accumulate_odometry(t0: np.ndarray, q0: np.ndarray, rel_t: np.ndarray, rel_q
     return T[:, :3, 3].copy(), matrix_to_quat(T[:, :3, :3])
 
 
-def umeyama_alignment(src: np.ndarray, dst: np.ndarray, with_scale: bool = False) -> tuple[np.ndarray, np.ndarray, float]:
+def umeyama_alignment(
+    src: np.ndarray, dst: np.ndarray, with_scale: bool = False
+) -> tuple[np.ndarray, np.ndarray, float]:
     """Least-squares similarity ``dst ~ s R src + t`` (Umeyama 1991) of point sets ``(N, 3)``.
 
     Returns ``R (3, 3)``, ``t (3,)``, ``s`` (1.0 unless ``with_scale``). Needs ``N >= 3``

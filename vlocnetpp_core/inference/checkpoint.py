@@ -60,7 +60,9 @@ def checkpoint_paths(path: str | Path) -> tuple[Path, Path]:
 # --------------------------------------------------------------------------- writing
 
 
-def save_checkpoint(path: str | Path, model: torch.nn.Module, meta: dict | None = None, dtype: torch.dtype = torch.float32) -> Path:
+def save_checkpoint(
+    path: str | Path, model: torch.nn.Module, meta: dict | None = None, dtype: torch.dtype = torch.float32
+) -> Path:
     """Write ``model`` (a ``VLocNetPP``) and its sidecar atomically; returns the weights path.
 
     ``meta`` entries (``training``, ``intrinsics`` as a dict or :class:`Intrinsics`,
@@ -74,8 +76,10 @@ def save_checkpoint(path: str | Path, model: torch.nn.Module, meta: dict | None 
     weights, sidecar = checkpoint_paths(path)
     weights.parent.mkdir(parents=True, exist_ok=True)
     weights_id = uuid.uuid4().hex
-    tensors = {k: (v.detach().to("cpu", dtype) if v.is_floating_point() else v.detach().cpu()).contiguous().clone()
-               for k, v in model.state_dict().items()}
+    tensors = {
+        k: (v.detach().to("cpu", dtype) if v.is_floating_point() else v.detach().cpu()).contiguous().clone()
+        for k, v in model.state_dict().items()
+    }
     info = build_sidecar(model.config, meta or {})
     info.update(weights=weights.name, weights_id=weights_id, dtype=str(dtype).removeprefix("torch."))
     text = json.dumps(info, indent=2, default=_jsonable) + "\n"
@@ -159,15 +163,19 @@ def read_checkpoint_meta(path: str | Path) -> dict[str, Any]:
     if not weights.is_file():
         raise DataError(weights, "no such checkpoint weights file")
     if not sidecar.is_file():
-        raise DataError(sidecar, f"missing checkpoint sidecar (the JSON written next to {weights.name} by save_checkpoint)")
+        raise DataError(
+            sidecar, f"missing checkpoint sidecar (the JSON written next to {weights.name} by save_checkpoint)"
+        )
     try:
         meta = json.loads(sidecar.read_text())
     except (UnicodeDecodeError, json.JSONDecodeError) as err:
         raise DataError(sidecar, f"not valid JSON (truncated or corrupt?): {err}") from None
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
-        raise DataError(sidecar, f"not a VLocNet++ checkpoint sidecar (expected \"format\": \"{FORMAT}\")")
+        raise DataError(sidecar, f'not a VLocNet++ checkpoint sidecar (expected "format": "{FORMAT}")')
     if int(meta.get("version", 0)) > VERSION:
-        raise DataError(sidecar, f"checkpoint format version {meta.get('version')} is newer than this code reads ({VERSION})")
+        raise DataError(
+            sidecar, f"checkpoint format version {meta.get('version')} is newer than this code reads ({VERSION})"
+        )
     for key in ("model_config", "intrinsics"):
         if not isinstance(meta.get(key), dict):
             raise DataError(sidecar, f"missing or malformed '{key}'")
@@ -178,8 +186,14 @@ def read_checkpoint_meta(path: str | Path) -> dict[str, Any]:
     meta["calibration"] = calib = _complete_calibration(meta.get("calibration") or {})
     for key in ("pose_variance", "odometry_variance"):
         v = calib[key]
-        if not (isinstance(v, list) and len(v) == 6 and all(isinstance(x, (int, float)) and math.isfinite(x) and x >= 0 for x in v)):
-            raise DataError(sidecar, f"calibration.{key} must be 6 finite non-negative variances (x, y, z, rx, ry, rz), got {v!r}")
+        if not (
+            isinstance(v, list)
+            and len(v) == 6
+            and all(isinstance(x, (int, float)) and math.isfinite(x) and x >= 0 for x in v)
+        ):
+            raise DataError(
+                sidecar, f"calibration.{key} must be 6 finite non-negative variances (x, y, z, rx, ry, rz), got {v!r}"
+            )
     return meta
 
 
@@ -197,7 +211,9 @@ def read_checkpoint_tensors(path: str | Path) -> tuple[dict[str, torch.Tensor], 
         raise DataError(weights, f"not a readable safetensors file (truncated or corrupt?): {err}") from None
     wid = meta.get("weights_id")
     if wid is not None and stored.get("weights_id") not in (None, wid):
-        raise DataError(sidecar, f"sidecar does not belong to {weights.name} (weights_id differs; an interrupted save?)")
+        raise DataError(
+            sidecar, f"sidecar does not belong to {weights.name} (weights_id differs; an interrupted save?)"
+        )
     return tensors, meta
 
 
@@ -215,8 +231,14 @@ def load_checkpoint(path: str | Path, device: str | torch.device = "cpu"):
     unexpected = sorted(set(tensors) - set(own))
     wrong = sorted(k for k in set(own) & set(tensors) if own[k].shape != tensors[k].shape)
     if missing or unexpected or wrong:
-        parts = [f"{len(v)} {what} (e.g. {v[0]})" for what, v in (("missing", missing), ("unexpected", unexpected), ("of another shape", wrong)) if v]
-        raise DataError(weights, f"weights do not fit the model config in {sidecar.name}: " + ", ".join(parts) + " tensors")
+        parts = [
+            f"{len(v)} {what} (e.g. {v[0]})"
+            for what, v in (("missing", missing), ("unexpected", unexpected), ("of another shape", wrong))
+            if v
+        ]
+        raise DataError(
+            weights, f"weights do not fit the model config in {sidecar.name}: " + ", ".join(parts) + " tensors"
+        )
     bad = [k for k, v in tensors.items() if v.is_floating_point() and not bool(torch.isfinite(v).all())]
     if bad:
         raise DataError(weights, f"{len(bad)} weight tensors hold NaN or infinite values (e.g. {bad[0]})")
@@ -227,7 +249,9 @@ def load_checkpoint(path: str | Path, device: str | torch.device = "cpu"):
 def calibration_variances(meta: dict) -> tuple[np.ndarray, np.ndarray]:
     """``(pose_variance (6,), odometry_variance (6,))`` float64 of a sidecar (defaults filled in)."""
     calib = _complete_calibration(meta.get("calibration") or {})
-    return np.asarray(calib["pose_variance"], dtype=np.float64), np.asarray(calib["odometry_variance"], dtype=np.float64)
+    return np.asarray(calib["pose_variance"], dtype=np.float64), np.asarray(
+        calib["odometry_variance"], dtype=np.float64
+    )
 
 
 def shipped_checkpoint() -> Path:
@@ -247,7 +271,10 @@ def shipped_checkpoint() -> Path:
     for path in candidates:
         if path.is_file():
             return path
-    looked = ", ".join(map(str, candidates)) or f"share/vlocnetpp_ros/{SHIPPED_MODEL} (vlocnetpp_ros is not on AMENT_PREFIX_PATH)"
+    looked = (
+        ", ".join(map(str, candidates))
+        or f"share/vlocnetpp_ros/{SHIPPED_MODEL} (vlocnetpp_ros is not on AMENT_PREFIX_PATH)"
+    )
     raise FileNotFoundError(f"the shipped model is missing (looked for {looked})")
 
 
@@ -268,13 +295,18 @@ def resolve_map_path(checkpoint: str | Path, value: str | Path | None, what: str
         if path.is_file():
             return path
         if warn is not None and weights.is_file():
-            warn(f"{what} '{MAP_AUTO}': no keyframe map beside the checkpoint ({path} is missing): running without refinement "
-                 "(build one with 'vlocnetpp map build')")
+            warn(
+                f"{what} '{MAP_AUTO}': no keyframe map beside the checkpoint ({path} is missing): running without refinement "
+                "(build one with 'vlocnetpp map build')"
+            )
         return None
     path = Path(value).expanduser()
     if path.is_dir():
         raise DataError(path, f"{what}: a folder, not a keyframe map file (.npz from 'vlocnetpp map build')")
     if not path.is_file():
-        raise DataError(path, f"{what}: no such keyframe map file (build one with 'vlocnetpp map build', or give '{MAP_AUTO}' "
-                              "for NAME.map.npz beside the checkpoint, or empty for no refinement)")
+        raise DataError(
+            path,
+            f"{what}: no such keyframe map file (build one with 'vlocnetpp map build', or give '{MAP_AUTO}' "
+            "for NAME.map.npz beside the checkpoint, or empty for no refinement)",
+        )
     return path

@@ -77,7 +77,9 @@ class LocalizerResult:
     pose_covariance: np.ndarray  # (6, 6) of the global pose
     odom_covariance: np.ndarray  # (6, 6) of the odometry pose
     twist_covariance: np.ndarray  # (6, 6)
-    mask: np.ndarray | None  # (H, W) uint8 class ids at the resolution of the given image; None: the model has no semantic stream
+    mask: (
+        np.ndarray | None
+    )  # (H, W) uint8 class ids at the resolution of the given image; None: the model has no semantic stream
     reset_reason: str | None  # why the temporal state was reset before this frame, None when it was not
     seconds: float  # wall time of the step
     network_t: np.ndarray  # the network's own global pose (t, q above when source is "network")
@@ -90,9 +92,18 @@ class LocalizerResult:
 class Localizer:
     """Streaming inference with temporal state. Build with :meth:`from_checkpoint`."""
 
-    def __init__(self, model: torch.nn.Module, meta: dict, device: str | torch.device = "cpu", max_gap_s: float = 1.0,
-                 num_threads: int = 0, backend: str = "torch", onnx_path: str | Path | None = None, refiner=None,
-                 refine_every: int = 1):
+    def __init__(
+        self,
+        model: torch.nn.Module,
+        meta: dict,
+        device: str | torch.device = "cpu",
+        max_gap_s: float = 1.0,
+        num_threads: int = 0,
+        backend: str = "torch",
+        onnx_path: str | Path | None = None,
+        refiner=None,
+        refine_every: int = 1,
+    ):
         """``backend``: ``"torch"`` runs ``model.step`` with the process's torch threads (set by the program:
         :func:`vlocnetpp_core.threads.use_threads`); ``"onnx"`` runs the exported step with ONNX Runtime in
         a session of ``num_threads`` threads (:mod:`vlocnetpp_core.threads`; ``onnx_path`` if it matches these
@@ -128,8 +139,16 @@ class Localizer:
         self.reset("start")
 
     @classmethod
-    def from_checkpoint(cls, path: str | Path, device: str = "cpu", max_gap_s: float = 1.0, num_threads: int = 0,
-                        backend: str = "torch", map_path: str | Path | None = None, refine_every: int = 1) -> Localizer:
+    def from_checkpoint(
+        cls,
+        path: str | Path,
+        device: str = "cpu",
+        max_gap_s: float = 1.0,
+        num_threads: int = 0,
+        backend: str = "torch",
+        map_path: str | Path | None = None,
+        refine_every: int = 1,
+    ) -> Localizer:
         """Load ``NAME.safetensors`` + ``NAME.json`` (see :mod:`vlocnetpp_core.inference.checkpoint`); the onnx
         backend uses ``NAME.onnx`` next to them when it was exported from these weights. ``map_path``: a keyframe
         map (``vlocnetpp map build``) to refine against; None: no refinement."""
@@ -141,8 +160,17 @@ class Localizer:
         if str(device).startswith("cuda") and not torch.cuda.is_available():
             raise UserError(f"device {device!r} requested but CUDA is not available (use device 'cpu')")
         model, meta = load_checkpoint(path, device=device)
-        return cls(model, meta, device=device, max_gap_s=max_gap_s, num_threads=num_threads, backend=backend,
-                   onnx_path=checkpoint_paths(path)[0].with_suffix(".onnx"), refiner=refiner, refine_every=refine_every)
+        return cls(
+            model,
+            meta,
+            device=device,
+            max_gap_s=max_gap_s,
+            num_threads=num_threads,
+            backend=backend,
+            onnx_path=checkpoint_paths(path)[0].with_suffix(".onnx"),
+            refiner=refiner,
+            refine_every=refine_every,
+        )
 
     @property
     def has_segmentation(self) -> bool:
@@ -164,8 +192,14 @@ class Localizer:
             self._odom_t, self._odom_q = _IDENTITY_T.copy(), _IDENTITY_Q.copy()
             self._odom_steps = 0
 
-    def step(self, image: np.ndarray, encoding: str, stamp: float, depth: np.ndarray | None = None,
-             intrinsics: Intrinsics | None = None) -> LocalizerResult:
+    def step(
+        self,
+        image: np.ndarray,
+        encoding: str,
+        stamp: float,
+        depth: np.ndarray | None = None,
+        intrinsics: Intrinsics | None = None,
+    ) -> LocalizerResult:
         """Process one frame.
 
         Args:
@@ -189,9 +223,13 @@ class Localizer:
         if reason is not None:
             self._state = None
         if self.refinement is not None:
-            self.refinement.start(rgb, self.default_intrinsics.resized(shape[1], shape[0]) if intrinsics is None else intrinsics)
+            self.refinement.start(
+                rgb, self.default_intrinsics.resized(shape[1], shape[0]) if intrinsics is None else intrinsics
+            )
         with torch.inference_mode():
-            out, state = self._step_fn(x.to(self.device), self._state, K.to(self.device), None if d is None else d.to(self.device))
+            out, state = self._step_fn(
+                x.to(self.device), self._state, K.to(self.device), None if d is None else d.to(self.device)
+            )
             outputs = (out.xyz, out.quat, out.rel_xyz, out.rel_quat, out.seg_logits)
             finite = all(bool(torch.isfinite(v).all()) for v in outputs if v is not None)
             if finite:
@@ -201,7 +239,9 @@ class Localizer:
             if self.refinement is not None:
                 self.refinement.cancel()
             self.reset("nan_output")
-            raise FrameError("nan_output", "the network produced NaN or infinite outputs; frame rejected and temporal state reset")
+            raise FrameError(
+                "nan_output", "the network produced NaN or infinite outputs; frame rejected and temporal state reset"
+            )
         dt = 0.0 if self._prev_stamp is None or reason is not None else stamp - self._prev_stamp
         self._state = state
         self._pending_reset = None
@@ -229,12 +269,25 @@ class Localizer:
             if p.covariance is not None:
                 pose_cov = p.covariance + np.diag(np.full(6, MIN_VARIANCE))
         return LocalizerResult(
-            stamp=stamp, t=pose_t, q=pose_q, rel_t=rel_t, rel_q=rel_q, odom_t=self._odom_t.copy(), odom_q=self._odom_q.copy(),
-            linear=linear, angular=angular, dt=dt,
+            stamp=stamp,
+            t=pose_t,
+            q=pose_q,
+            rel_t=rel_t,
+            rel_q=rel_q,
+            odom_t=self._odom_t.copy(),
+            odom_q=self._odom_q.copy(),
+            linear=linear,
+            angular=angular,
+            dt=dt,
             pose_covariance=pose_cov,
             odom_covariance=np.diag(self.odometry_variance * (1 + self._odom_steps)),
             twist_covariance=np.diag(twist_var),
-            mask=mask, reset_reason=reason, seconds=time.perf_counter() - start, network_t=xyz, network_q=q, **refined,
+            mask=mask,
+            reset_reason=reason,
+            seconds=time.perf_counter() - start,
+            network_t=xyz,
+            network_q=q,
+            **refined,
         )
 
     def _reset_reason(self, stamp: float, shape: tuple[int, int], intrinsics: Intrinsics) -> str | None:

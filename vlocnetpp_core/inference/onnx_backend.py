@@ -68,19 +68,30 @@ class OnnxStep:
         self._zeros = {n: np.zeros(inputs[f"state_{n}"].shape, np.float32) for n in self.state_names}
         self.input_size = (int(inputs["image"].shape[3]), int(inputs["image"].shape[2]))  # (W, H)
         self._no_depth = np.zeros((1, 1, self.input_size[1], self.input_size[0]), np.float32)
-        self._inputs = set(inputs)  # the exporter drops inputs the graph never reads: depth, use_depth without a depth head
+        self._inputs = set(
+            inputs
+        )  # the exporter drops inputs the graph never reads: depth, use_depth without a depth head
 
-    def __call__(self, image: torch.Tensor, state: StreamState | None = None, K: torch.Tensor | None = None,
-                 depth: torch.Tensor | None = None) -> tuple[StepOutput, StreamState]:
+    def __call__(
+        self,
+        image: torch.Tensor,
+        state: StreamState | None = None,
+        K: torch.Tensor | None = None,
+        depth: torch.Tensor | None = None,
+    ) -> tuple[StepOutput, StreamState]:
         """``image (1, 3, H, W)`` in [0, 1], ``K (1, 3, 3)``, ``depth (1, 1, H, W)`` metres or None -> heads and next state."""
         if tuple(image.shape) != (1, 3, self.input_size[1], self.input_size[0]):
-            raise ValueError(f"{self.path} takes one (1, 3, {self.input_size[1]}, {self.input_size[0]}) image, got {tuple(image.shape)}")
+            raise ValueError(
+                f"{self.path} takes one (1, 3, {self.input_size[1]}, {self.input_size[0]}) image, got {tuple(image.shape)}"
+            )
         if K is None:
             raise ValueError("K (1, 3, 3), the intrinsics at the network input size, is required")
         feed = {
-            "image": _array(image), "K": _array(K),
+            "image": _array(image),
+            "K": _array(K),
             "depth": self._no_depth if depth is None else _array(depth),
-            "use_depth": np.array(depth is not None), "first": np.array(state is None),
+            "use_depth": np.array(depth is not None),
+            "first": np.array(state is None),
         }
         for name in self.state_names:
             feed[f"state_{name}"] = self._zeros[name] if state is None else _array(getattr(state, name))
@@ -103,14 +114,21 @@ def _providers(device: torch.device) -> list:
         return ["CPUExecutionProvider"]
     if device.type == "cuda":
         if "CUDAExecutionProvider" not in ort.get_available_providers():
-            raise UserError(f"backend 'onnx' on device {str(device)!r} needs onnxruntime-gpu (the installed onnxruntime "
-                            f"offers {', '.join(ort.get_available_providers())})")
+            raise UserError(
+                f"backend 'onnx' on device {str(device)!r} needs onnxruntime-gpu (the installed onnxruntime "
+                f"offers {', '.join(ort.get_available_providers())})"
+            )
         return [("CUDAExecutionProvider", {"device_id": device.index or 0}), "CPUExecutionProvider"]
     raise UserError(f"backend 'onnx' supports devices cpu and cuda, not {str(device)!r}")
 
 
-def onnx_step_for(model: torch.nn.Module, meta: dict, device: str | torch.device = "cpu", num_threads: int = 0,
-                  next_to: str | Path | None = None) -> OnnxStep:
+def onnx_step_for(
+    model: torch.nn.Module,
+    meta: dict,
+    device: str | torch.device = "cpu",
+    num_threads: int = 0,
+    next_to: str | Path | None = None,
+) -> OnnxStep:
     """The :class:`OnnxStep` of a loaded checkpoint: ``next_to`` (``NAME.onnx``) when it matches these
     weights, else the cached export (made now when missing; see module doc)."""
     require("onnxruntime", "backend 'onnx'")  # before a possibly long export
@@ -121,13 +139,17 @@ def onnx_step_for(model: torch.nn.Module, meta: dict, device: str | torch.device
         if weights_id and found.get("weights_id") == weights_id and found.get("input_size") == f"{W}x{H}":
             return OnnxStep(next_to, device, num_threads)
     if not weights_id:
-        raise UserError("backend 'onnx': the checkpoint has no weights_id to match an export with; "
-                        "export one with 'vlocnetpp export-onnx --checkpoint NAME.safetensors --out NAME.onnx'")
+        raise UserError(
+            "backend 'onnx': the checkpoint has no weights_id to match an export with; "
+            "export one with 'vlocnetpp export-onnx --checkpoint NAME.safetensors --out NAME.onnx'"
+        )
     cached = cache_dir() / "onnx" / f"{weights_id}.onnx"
     if not cached.is_file():
         try:
             export_step(model, cached, weights_id=weights_id)
         except OSError as err:
-            raise UserError(f"backend 'onnx': cannot write the exported graph to {cached} ({err}); set VLOCNETPP_CACHE "
-                            "to a writable folder or export next to the checkpoint with 'vlocnetpp export-onnx'") from None
+            raise UserError(
+                f"backend 'onnx': cannot write the exported graph to {cached} ({err}); set VLOCNETPP_CACHE "
+                "to a writable folder or export next to the checkpoint with 'vlocnetpp export-onnx'"
+            ) from None
     return OnnxStep(cached, device, num_threads)

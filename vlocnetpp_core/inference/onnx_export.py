@@ -83,8 +83,15 @@ class StreamingStepGraph(nn.Module):
         self.state_names = state_names(model)
         self.head_outputs = head_outputs(model)
 
-    def forward(self, image: torch.Tensor, K: torch.Tensor, depth: torch.Tensor, use_depth: torch.Tensor, first: torch.Tensor,
-                *state: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    def forward(
+        self,
+        image: torch.Tensor,
+        K: torch.Tensor,
+        depth: torch.Tensor,
+        use_depth: torch.Tensor,
+        first: torch.Tensor,
+        *state: torch.Tensor,
+    ) -> tuple[torch.Tensor, ...]:
         from vlocnetpp_core.model import StreamState
 
         with _first_frame_selection(self.model, first, depth, use_depth):
@@ -93,7 +100,9 @@ class StreamingStepGraph(nn.Module):
 
 
 @contextlib.contextmanager
-def _first_frame_selection(model: nn.Module, first: torch.Tensor, depth: torch.Tensor, use_depth: torch.Tensor) -> Iterator[None]:
+def _first_frame_selection(
+    model: nn.Module, first: torch.Tensor, depth: torch.Tensor, use_depth: torch.Tensor
+) -> Iterator[None]:
     """Hooks: where ``first``, every fusion with the previous frame gets the current frame's own
     features (what ``step(state=None)`` does); where ``use_depth``, the given depth replaces the
     predicted one (what ``step(depth=...)`` does)."""
@@ -103,6 +112,7 @@ def _first_frame_selection(model: nn.Module, first: torch.Tensor, depth: torch.T
             args = list(args)
             args[previous_arg] = torch.where(first, args[own_arg], args[previous_arg])
             return tuple(args)
+
         return hook
 
     handles = [model.odometry.register_forward_pre_hook(own_as_previous(0, 1))]  # OdometryStream(prev_res4, res4)
@@ -111,7 +121,9 @@ def _first_frame_selection(model: nn.Module, first: torch.Tensor, depth: torch.T
         if awf is not None:  # AWF(current, previous)
             handles.append(awf.register_forward_pre_hook(own_as_previous(1, 0)))
     if model.depth_head is not None:
-        handles.append(model.depth_head.register_forward_hook(lambda _m, _a, predicted: torch.where(use_depth, depth, predicted)))
+        handles.append(
+            model.depth_head.register_forward_hook(lambda _m, _a, predicted: torch.where(use_depth, depth, predicted))
+        )
     try:
         yield
     finally:
@@ -132,7 +144,9 @@ def example_inputs(model: nn.Module, input_size: tuple[int, int] | None = None) 
     return (image, K, torch.zeros(1, 1, H, W, device=device), torch.tensor(False, device=device), flag, *zeros)
 
 
-def export_step(model: nn.Module, out: str | Path, weights_id: str | None = None, input_size: tuple[int, int] | None = None) -> Path:
+def export_step(
+    model: nn.Module, out: str | Path, weights_id: str | None = None, input_size: tuple[int, int] | None = None
+) -> Path:
     """Write the streaming-step graph of ``model`` (eval mode, CPU or GPU) to ``out`` atomically; returns the path."""
     onnx = require("onnx", "ONNX export")
 
@@ -149,11 +163,23 @@ def export_step(model: nn.Module, out: str | Path, weights_id: str | None = None
     try:
         with warnings.catch_warnings(), torch.no_grad():
             warnings.simplefilter("ignore")  # TracerWarnings about Python-side shape checks, deprecation notes
-            torch.onnx.export(graph, inputs, tmp, dynamo=False, opset_version=OPSET, input_names=names_in,
-                              output_names=names_out, do_constant_folding=True)
+            torch.onnx.export(
+                graph,
+                inputs,
+                tmp,
+                dynamo=False,
+                opset_version=OPSET,
+                input_names=names_in,
+                output_names=names_out,
+                do_constant_folding=True,
+            )
         proto = onnx.load(tmp)
-        meta = {"vlocnetpp_format": f"{FORMAT}/{VERSION}", "weights_id": weights_id or "", "input_size": f"{W}x{H}",
-                "state_names": json.dumps(graph.state_names)}
+        meta = {
+            "vlocnetpp_format": f"{FORMAT}/{VERSION}",
+            "weights_id": weights_id or "",
+            "input_size": f"{W}x{H}",
+            "state_names": json.dumps(graph.state_names),
+        }
         for key, value in meta.items():
             proto.metadata_props.add(key=key, value=value)
         onnx.save(proto, tmp)
@@ -185,13 +211,22 @@ def read_metadata(path: str | Path) -> dict[str, str]:
         raise DataError(path, f"not a readable ONNX model (truncated or corrupt?): {err}") from None
     meta = {p.key: p.value for p in proto.metadata_props}
     if meta.get("vlocnetpp_format") != f"{FORMAT}/{VERSION}":
-        raise DataError(path, f"not a VLocNet++ streaming-step graph (made by 'vlocnetpp export-onnx', format {FORMAT}/{VERSION})")
+        raise DataError(
+            path, f"not a VLocNet++ streaming-step graph (made by 'vlocnetpp export-onnx', format {FORMAT}/{VERSION})"
+        )
     return meta
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--checkpoint", required=True, metavar="NAME.safetensors", help="checkpoint to export (NAME.json next to it)")
-    p.add_argument("--out", required=True, metavar="MODEL.onnx", help="output ONNX file (the Localizer's onnx backend looks for NAME.onnx next to the checkpoint)")
+    p.add_argument(
+        "--checkpoint", required=True, metavar="NAME.safetensors", help="checkpoint to export (NAME.json next to it)"
+    )
+    p.add_argument(
+        "--out",
+        required=True,
+        metavar="MODEL.onnx",
+        help="output ONNX file (the Localizer's onnx backend looks for NAME.onnx next to the checkpoint)",
+    )
     p.add_argument("--force", action="store_true", help="replace MODEL.onnx if it exists")
 
 
@@ -202,6 +237,8 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--out {out}: expected a .onnx file name")
     path = export_checkpoint(args.checkpoint, out)
     meta = read_metadata(path)
-    print(f"wrote {path} ({path.stat().st_size / 2**20:.1f} MiB): streaming step at {meta['input_size']}, "
-          f"state {', '.join(json.loads(meta['state_names']))}, opset {OPSET}")
+    print(
+        f"wrote {path} ({path.stat().st_size / 2**20:.1f} MiB): streaming step at {meta['input_size']}, "
+        f"state {', '.join(json.loads(meta['state_names']))}, opset {OPSET}"
+    )
     return 0

@@ -77,7 +77,9 @@ _LAYOUTS: dict[str, tuple[int, np.dtype]] = {
 }
 
 
-def check_raw(size: int, width: int, height: int, step: int, encoding: str, allowed: Iterable[str] | None = None) -> tuple[int, np.dtype, int]:
+def check_raw(
+    size: int, width: int, height: int, step: int, encoding: str, allowed: Iterable[str] | None = None
+) -> tuple[int, np.dtype, int]:
     """The checks of :func:`decode_raw` on a buffer of ``size`` bytes, from the header alone (O(1)).
 
     Returns ``(channels, dtype, row bytes)``; raises :class:`FrameError` (``unsupported_encoding``,
@@ -86,24 +88,40 @@ def check_raw(size: int, width: int, height: int, step: int, encoding: str, allo
     allowed = tuple(_LAYOUTS if allowed is None else allowed)
     if encoding not in allowed:
         shown = encoding if len(encoding) <= 40 else encoding[:40] + "..."
-        raise FrameError("unsupported_encoding", f"unsupported encoding {shown!r}; expected one of {', '.join(allowed)}")
+        raise FrameError(
+            "unsupported_encoding", f"unsupported encoding {shown!r}; expected one of {', '.join(allowed)}"
+        )
     channels, dtype = _LAYOUTS[encoding]
     width, height, step, size = int(width), int(height), int(step), int(size)
     if width <= 0 or height <= 0:
         raise FrameError("empty_image", f"{encoding} image is {width}x{height}: nothing to process")
     row = width * channels * dtype.itemsize
     if step < row:
-        raise FrameError("bad_step", f"{encoding} image {width}x{height}: step {step} is smaller than a row of {row} bytes")
+        raise FrameError(
+            "bad_step", f"{encoding} image {width}x{height}: step {step} is smaller than a row of {row} bytes"
+        )
     if size < step * height:
-        raise FrameError("truncated_data", f"{encoding} image {width}x{height}, step {step}: {size} data bytes, expected {step * height}")
+        raise FrameError(
+            "truncated_data",
+            f"{encoding} image {width}x{height}, step {step}: {size} data bytes, expected {step * height}",
+        )
     if size > step * height:
-        raise FrameError("data_size_mismatch",
-                         f"{encoding} image {width}x{height}, step {step}: {size} data bytes, expected {step * height} (wrong width/height?)")
+        raise FrameError(
+            "data_size_mismatch",
+            f"{encoding} image {width}x{height}, step {step}: {size} data bytes, expected {step * height} (wrong width/height?)",
+        )
     return channels, dtype, row
 
 
-def decode_raw(data, width: int, height: int, step: int, encoding: str, is_bigendian: bool = False,
-               allowed: Iterable[str] | None = None) -> np.ndarray:
+def decode_raw(
+    data,
+    width: int,
+    height: int,
+    step: int,
+    encoding: str,
+    is_bigendian: bool = False,
+    allowed: Iterable[str] | None = None,
+) -> np.ndarray:
     """Pixels of a raw image buffer: ``(H, W)`` for one channel, else ``(H, W, C)``, in the
     buffer's own channel order and the encoding's dtype (native byte order, always a copy).
 
@@ -125,12 +143,17 @@ def decode_raw(data, width: int, height: int, step: int, encoding: str, is_bigen
 def to_rgb(image: np.ndarray, encoding: str) -> np.ndarray:
     """``(H, W, 3) uint8`` RGB of an 8-bit image array in ``encoding`` (see :data:`IMAGE_ENCODINGS`)."""
     if encoding not in IMAGE_ENCODINGS:
-        raise FrameError("unsupported_encoding", f"unsupported image encoding {encoding!r}; expected one of {', '.join(IMAGE_ENCODINGS)}")
+        raise FrameError(
+            "unsupported_encoding",
+            f"unsupported image encoding {encoding!r}; expected one of {', '.join(IMAGE_ENCODINGS)}",
+        )
     channels, code = IMAGE_ENCODINGS[encoding]
     a = np.asarray(image)
     fits = a.ndim == 2 or (a.ndim == 3 and a.shape[2] == 1) if channels == 1 else a.ndim == 3 and a.shape[2] == channels
     if a.dtype != np.uint8 or not fits:
-        raise FrameError("bad_array", f"array {a.shape} {a.dtype} does not fit encoding {encoding} ({channels} x uint8)")
+        raise FrameError(
+            "bad_array", f"array {a.shape} {a.dtype} does not fit encoding {encoding} ({channels} x uint8)"
+        )
     if a.shape[0] == 0 or a.shape[1] == 0:
         raise FrameError("empty_image", f"{encoding} image is {a.shape[1]}x{a.shape[0]}: nothing to process")
     if code is None:
@@ -160,7 +183,9 @@ def compressed_size(data) -> tuple[str, int, int]:
                 i += 2
             elif marker in _JPEG_FRAME_MARKERS and i + 9 <= n:
                 return "jpeg", (buf[i + 7] << 8) | buf[i + 8], (buf[i + 5] << 8) | buf[i + 6]
-            elif marker in (0xD9, 0xDA) or (buf[i + 2] << 8 | buf[i + 3]) < 2:  # end or scan before a frame header, bad length
+            elif (
+                marker in (0xD9, 0xDA) or (buf[i + 2] << 8 | buf[i + 3]) < 2
+            ):  # end or scan before a frame header, bad length
                 break
             else:
                 i += 2 + (buf[i + 2] << 8 | buf[i + 3])
@@ -172,7 +197,10 @@ def check_compressed(data) -> tuple[int, int]:
     neither, ``image_too_large`` when it declares more than :data:`MAX_DECODED_PIXELS`."""
     fmt, width, height = compressed_size(data)
     if width * height > MAX_DECODED_PIXELS:
-        raise FrameError("image_too_large", f"the {fmt} image declares {width}x{height} pixels, more than the {MAX_DECODED_PIXELS} decoded at most")
+        raise FrameError(
+            "image_too_large",
+            f"the {fmt} image declares {width}x{height} pixels, more than the {MAX_DECODED_PIXELS} decoded at most",
+        )
     return width, height
 
 
@@ -196,13 +224,18 @@ def depth_to_metres(depth: np.ndarray, encoding: str) -> np.ndarray:
     Invalid pixels (0, negative, NaN, infinite) become 0, the "no depth" value of the model.
     """
     if encoding not in DEPTH_ENCODINGS:
-        raise FrameError("unsupported_encoding", f"unsupported depth encoding {encoding!r}; expected one of {', '.join(DEPTH_ENCODINGS)}")
+        raise FrameError(
+            "unsupported_encoding",
+            f"unsupported depth encoding {encoding!r}; expected one of {', '.join(DEPTH_ENCODINGS)}",
+        )
     a = np.asarray(depth)
     if a.ndim == 3 and a.shape[2] == 1:
         a = a[..., 0]
     dtype, scale = DEPTH_ENCODINGS[encoding]
     if a.ndim != 2 or a.dtype != dtype:
-        raise FrameError("bad_array", f"depth array {a.shape} {a.dtype} does not fit encoding {encoding} (H x W {dtype})")
+        raise FrameError(
+            "bad_array", f"depth array {a.shape} {a.dtype} does not fit encoding {encoding} (H x W {dtype})"
+        )
     metres = a.astype(np.float32) * np.float32(scale)
     metres[~np.isfinite(metres) | (metres < 0)] = 0.0
     return metres
@@ -236,8 +269,9 @@ def image_tensor(rgb: np.ndarray) -> torch.Tensor:
     return torch.from_numpy(np.ascontiguousarray(rgb)).permute(2, 0, 1)[None].float().div_(255.0)
 
 
-def network_input(rgb: np.ndarray, size: tuple[int, int], intrinsics: Intrinsics, depth: np.ndarray | None = None
-                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+def network_input(
+    rgb: np.ndarray, size: tuple[int, int], intrinsics: Intrinsics, depth: np.ndarray | None = None
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
     """Everything one model step needs, at the network input ``size = (W, H)``.
 
     Args:
@@ -250,7 +284,10 @@ def network_input(rgb: np.ndarray, size: tuple[int, int], intrinsics: Intrinsics
         ``depth (1, 1, H, W)`` metres or None.
     """
     if depth is not None and depth.shape[:2] != rgb.shape[:2]:
-        raise FrameError("depth_size", f"depth image is {depth.shape[1]}x{depth.shape[0]} but the colour image is {rgb.shape[1]}x{rgb.shape[0]}")
+        raise FrameError(
+            "depth_size",
+            f"depth image is {depth.shape[1]}x{depth.shape[0]} but the colour image is {rgb.shape[1]}x{rgb.shape[0]}",
+        )
     image = image_tensor(resize_image(rgb, size))
     K = torch.from_numpy(intrinsics.resized(*size).matrix()).float()[None]
     d = None if depth is None else torch.from_numpy(np.ascontiguousarray(resize_nearest(depth, size)))[None, None]

@@ -30,13 +30,16 @@ from vlocnetpp_core.mapping.sources import dataset_keyframes
 SPACING_M = 7.0  # keyframe spacing and turn of the shipped map (docs/refinement.md, "The map")
 ANGLE_DEG = 25.0
 MAX_DEPTH_M = 100.0
-EDGE_FRACTION = 0.1  # a keypoint whose 3x3 depth neighbourhood spans more than this fraction of its depth sits on a depth edge
+EDGE_FRACTION = (
+    0.1  # a keypoint whose 3x3 depth neighbourhood spans more than this fraction of its depth sits on a depth edge
+)
 MIN_TRIANGULATION_DEG = 1.0
 MAX_TRIANGULATION_PX = 2.0
 
 
-def lift_with_depth(uv: np.ndarray, depth: np.ndarray, K: np.ndarray, t: np.ndarray, q: np.ndarray,
-                    max_depth_m: float = MAX_DEPTH_M) -> tuple[np.ndarray, np.ndarray]:
+def lift_with_depth(
+    uv: np.ndarray, depth: np.ndarray, K: np.ndarray, t: np.ndarray, q: np.ndarray, max_depth_m: float = MAX_DEPTH_M
+) -> tuple[np.ndarray, np.ndarray]:
     """``(keep (N,) bool, points (n, 3) float32)``: the keypoints ``uv (N, 2)`` with valid depth in ``depth (H, W)``,
     in the map frame of a camera at ``T_map,cam = (t, q)``."""
     h, w = depth.shape
@@ -50,7 +53,9 @@ def lift_with_depth(uv: np.ndarray, depth: np.ndarray, K: np.ndarray, t: np.ndar
     return keep, (camera @ geometry.quat_to_matrix(q).T + t).astype(np.float32)
 
 
-def triangulate(a: Features, b: Features, K_a: np.ndarray, K_b: np.ndarray, pose_a, pose_b, ratio: float) -> tuple[np.ndarray, np.ndarray]:
+def triangulate(
+    a: Features, b: Features, K_a: np.ndarray, K_b: np.ndarray, pose_a, pose_b, ratio: float
+) -> tuple[np.ndarray, np.ndarray]:
     """``(keep (N_a,) bool, points (n, 3) float32)``: keypoints of ``a`` triangulated with their matches in ``b``
     (poses ``(t, q)`` ``T_map,cam``), kept under the module docstring's checks."""
     keep = np.zeros(len(a), bool)
@@ -66,7 +71,9 @@ def triangulate(a: Features, b: Features, K_a: np.ndarray, K_b: np.ndarray, pose
         ok &= x[:, 2] > 1e-6
         ok &= np.linalg.norm(x[:, :2] / np.maximum(x[:, 2:], 1e-6) - uv, axis=1) < MAX_TRIANGULATION_PX
     rays = [X - pose[0] for pose in (pose_a, pose_b)]
-    cos = np.sum(rays[0] * rays[1], 1) / np.maximum(np.linalg.norm(rays[0], axis=1) * np.linalg.norm(rays[1], axis=1), 1e-12)
+    cos = np.sum(rays[0] * rays[1], 1) / np.maximum(
+        np.linalg.norm(rays[0], axis=1) * np.linalg.norm(rays[1], axis=1), 1e-12
+    )
     ok &= cos <= np.cos(np.radians(MIN_TRIANGULATION_DEG))
     keep[qi[ok]] = True
     order = np.argsort(qi[ok])  # points in the order of the kept keypoints
@@ -78,21 +85,34 @@ def _world_to_camera(t: np.ndarray, q: np.ndarray) -> np.ndarray:
     return np.c_[R.T, -R.T @ t]
 
 
-def build_map(indexes: Sequence, spacing_m: float = SPACING_M, angle_deg: float = ANGLE_DEG, features: FeatureConfig = FeatureConfig(),
-              progress: bool = True, workers: int = 1) -> KeyframeMap:
+def build_map(
+    indexes: Sequence,
+    spacing_m: float = SPACING_M,
+    angle_deg: float = ANGLE_DEG,
+    features: FeatureConfig = FeatureConfig(),
+    progress: bool = True,
+    workers: int = 1,
+) -> KeyframeMap:
     """The map of the frames of ``indexes`` (``DatasetIndex``es with poses); ``UserError`` naming the dataset when one
     has no frames, or when the map would have no points."""
     sequences = dataset_keyframes(indexes, spacing_m, angle_deg)
     return build_map_of(sequences, "; ".join(f"{ix.root} ({ix.split})" for ix in indexes), features, progress, workers)
 
 
-def build_map_of(sequences: Sequence, source: str, features: FeatureConfig = FeatureConfig(), progress: bool = True,
-                 workers: int = 1) -> KeyframeMap:
+def build_map_of(
+    sequences: Sequence, source: str, features: FeatureConfig = FeatureConfig(), progress: bool = True, workers: int = 1
+) -> KeyframeMap:
     """The map of keyframe ``sequences`` (:mod:`.sources`), described as ``source``; ``workers`` processes (1: this
     one) each take whole sequences, and the map is the same for any number. ``UserError`` when it has no points."""
     from tqdm import tqdm
 
-    bar = tqdm(total=sum(len(s) for s in sequences), desc="map keyframes", unit="keyframe", disable=not progress, dynamic_ncols=True)
+    bar = tqdm(
+        total=sum(len(s) for s in sequences),
+        desc="map keyframes",
+        unit="keyframe",
+        disable=not progress,
+        dynamic_ncols=True,
+    )
     with bar:
         if workers <= 1 or len(sequences) < 2:
             done = []
@@ -116,7 +136,9 @@ def _in_processes(sequences: Sequence, features: FeatureConfig, workers: int, ba
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor
 
-    with ProcessPoolExecutor(workers, multiprocessing.get_context("spawn"), initializer=cv2.setNumThreads, initargs=(1,)) as pool:
+    with ProcessPoolExecutor(
+        workers, multiprocessing.get_context("spawn"), initializer=cv2.setNumThreads, initargs=(1,)
+    ) as pool:
         futures = [pool.submit(_sequence_parts, seq, features) for seq in sequences]
         for future, seq in zip(futures, sequences, strict=True):
             future.add_done_callback(lambda _f, n=len(seq): bar.update(n))
@@ -155,7 +177,9 @@ def _points_of(frames: list, found: list[Features], j: int, ratio: float) -> tup
     if len(frames) < 2:
         return np.zeros(len(found[j]), bool), np.zeros((0, 3), np.float32)
     o = j + 1 if j + 1 < len(frames) else j - 1
-    return triangulate(found[j], found[o], K, frames[o].intrinsics.matrix(), (f.t, f.q), (frames[o].t, frames[o].q), ratio)
+    return triangulate(
+        found[j], found[o], K, frames[o].intrinsics.matrix(), (f.t, f.q), (frames[o].t, frames[o].q), ratio
+    )
 
 
 def _append(parts: dict, frame, feats: Features, keep: np.ndarray, points: np.ndarray, thumbnail: np.ndarray) -> None:
@@ -174,9 +198,15 @@ def _append(parts: dict, frame, feats: Features, keep: np.ndarray, points: np.nd
 def _assemble(parts: dict, features: FeatureConfig, source: str) -> KeyframeMap:
     offsets = np.concatenate(([0], np.cumsum(parts["counts"]))).astype(np.int64)
     return KeyframeMap(
-        t=np.asarray(parts["t"], np.float64), q=np.asarray(parts["q"], np.float64),
-        intrinsics=np.asarray(parts["intrinsics"], np.float64), image_sizes=np.asarray(parts["image_sizes"], np.int32),
-        offsets=offsets, uv=np.concatenate(parts["uv"]).astype(np.float32), points=np.concatenate(parts["points"]).astype(np.float32),
-        descriptors=np.concatenate(parts["descriptors"]).astype(np.uint8), thumbnails=np.asarray(parts["thumbnails"], np.float16),
-        features=features, source=source,
+        t=np.asarray(parts["t"], np.float64),
+        q=np.asarray(parts["q"], np.float64),
+        intrinsics=np.asarray(parts["intrinsics"], np.float64),
+        image_sizes=np.asarray(parts["image_sizes"], np.int32),
+        offsets=offsets,
+        uv=np.concatenate(parts["uv"]).astype(np.float32),
+        points=np.concatenate(parts["points"]).astype(np.float32),
+        descriptors=np.concatenate(parts["descriptors"]).astype(np.uint8),
+        thumbnails=np.asarray(parts["thumbnails"], np.float16),
+        features=features,
+        source=source,
     )

@@ -23,24 +23,70 @@ from vlocnetpp_core.synth.cli import parse_size
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     sub = p.add_subparsers(dest="map_command", metavar="ACTION", required=True)
-    b = sub.add_parser("build", help="build a map from datasets with poses (and depth, else triangulated)",
-                       description="Build a keyframe map (keyframes, SIFT features and their 3D points) of datasets with known poses.")
+    b = sub.add_parser(
+        "build",
+        help="build a map from datasets with poses (and depth, else triangulated)",
+        description="Build a keyframe map (keyframes, SIFT features and their 3D points) of datasets with known poses.",
+    )
     b.add_argument("out", metavar="OUT", help="map file to write (.npz)")
     what = b.add_mutually_exclusive_group(required=True)
-    what.add_argument("--data", action="append", metavar="DIR", help="dataset folder (DeepLoc layout or 7-Scenes); repeat for several")
-    what.add_argument("--scene", metavar="NAME", help="synthetic scene (as 'vlocnetpp synth --scene'): render only the keyframes of its train visits")
+    what.add_argument(
+        "--data", action="append", metavar="DIR", help="dataset folder (DeepLoc layout or 7-Scenes); repeat for several"
+    )
+    what.add_argument(
+        "--scene",
+        metavar="NAME",
+        help="synthetic scene (as 'vlocnetpp synth --scene'): render only the keyframes of its train visits",
+    )
     b.add_argument("--format", choices=FORMATS, default=None, help="dataset format (default: detected from the layout)")
-    b.add_argument("--split", default="train", help="split of --data to build the map of (default: train, the model's training images)")
-    b.add_argument("--seed", type=int, default=0, help="with --scene: the visits' seed, as 'vlocnetpp synth --seed' (default 0)")
-    b.add_argument("--loops", type=int, default=4, help="with --scene: train visits, as 'vlocnetpp synth --loops' (default 4)")
-    b.add_argument("--frames-per-loop", type=int, default=175, metavar="F", help="with --scene: as 'vlocnetpp synth' (default 175)")
-    b.add_argument("--size", type=parse_size, default=(320, 180), metavar="WxH", help="with --scene: image size, as 'vlocnetpp synth' (default 320x180)")
-    b.add_argument("--lane-wander", type=float, default=0.0, metavar="M", help="with --scene: as 'vlocnetpp synth' (default 0)")
-    b.add_argument("--spacing", type=float, default=SPACING_M, metavar="M",
-                   help=f"a new keyframe every M metres along each sequence (default {SPACING_M:g}, the shipped map's)")
-    b.add_argument("--angle", type=float, default=ANGLE_DEG, metavar="DEG", help=f"... or every DEG degrees of turn (default {ANGLE_DEG:g})")
-    b.add_argument("--max-features", type=int, default=1500, metavar="N", help="SIFT keypoints per keyframe at most (default 1500)")
-    b.add_argument("--workers", type=int, default=0, metavar="N", help="processes (default 0: one per core); the map is the same for any N")
+    b.add_argument(
+        "--split",
+        default="train",
+        help="split of --data to build the map of (default: train, the model's training images)",
+    )
+    b.add_argument(
+        "--seed", type=int, default=0, help="with --scene: the visits' seed, as 'vlocnetpp synth --seed' (default 0)"
+    )
+    b.add_argument(
+        "--loops", type=int, default=4, help="with --scene: train visits, as 'vlocnetpp synth --loops' (default 4)"
+    )
+    b.add_argument(
+        "--frames-per-loop", type=int, default=175, metavar="F", help="with --scene: as 'vlocnetpp synth' (default 175)"
+    )
+    b.add_argument(
+        "--size",
+        type=parse_size,
+        default=(320, 180),
+        metavar="WxH",
+        help="with --scene: image size, as 'vlocnetpp synth' (default 320x180)",
+    )
+    b.add_argument(
+        "--lane-wander", type=float, default=0.0, metavar="M", help="with --scene: as 'vlocnetpp synth' (default 0)"
+    )
+    b.add_argument(
+        "--spacing",
+        type=float,
+        default=SPACING_M,
+        metavar="M",
+        help=f"a new keyframe every M metres along each sequence (default {SPACING_M:g}, the shipped map's)",
+    )
+    b.add_argument(
+        "--angle",
+        type=float,
+        default=ANGLE_DEG,
+        metavar="DEG",
+        help=f"... or every DEG degrees of turn (default {ANGLE_DEG:g})",
+    )
+    b.add_argument(
+        "--max-features", type=int, default=1500, metavar="N", help="SIFT keypoints per keyframe at most (default 1500)"
+    )
+    b.add_argument(
+        "--workers",
+        type=int,
+        default=0,
+        metavar="N",
+        help="processes (default 0: one per core); the map is the same for any N",
+    )
     b.add_argument("--force", action="store_true", help="replace OUT if it exists (only once the new map is complete)")
     b.add_argument("--no-progress", action="store_true", help="no progress bar")
     i = sub.add_parser("info", help="summarise a map file", description="Keyframes, points and sources of a map file.")
@@ -81,8 +127,10 @@ def _build(args: argparse.Namespace) -> int:
         m.save(out)
     except OSError as err:
         raise UserError(f"{out}: cannot write the map ({err.strerror or err})") from None
-    print(f"wrote {out}: {len(m)} keyframes, {m.num_points} points ({m.num_points / len(m):.0f} a keyframe), "
-          f"{out.stat().st_size / 1e6:.1f} MB, in {time.perf_counter() - start:.0f} s")
+    print(
+        f"wrote {out}: {len(m)} keyframes, {m.num_points} points ({m.num_points / len(m):.0f} a keyframe), "
+        f"{out.stat().st_size / 1e6:.1f} MB, in {time.perf_counter() - start:.0f} s"
+    )
     return 0
 
 
@@ -94,15 +142,22 @@ def _keyframe_sequences(args: argparse.Namespace) -> tuple[list, str]:
         from vlocnetpp_core.data import open_dataset
 
         indexes = [open_dataset(d, args.format, args.split) for d in args.data]
-        return sources.dataset_keyframes(indexes, args.spacing, args.angle), "; ".join(f"{ix.root} ({ix.split})" for ix in indexes)
+        return sources.dataset_keyframes(indexes, args.spacing, args.angle), "; ".join(
+            f"{ix.root} ({ix.split})" for ix in indexes
+        )
     from vlocnetpp_core.synth.writer import check_render_args
 
     if args.loops < 1:
         raise UserError(f"--loops must be >= 1 with --scene, got {args.loops}")
-    size = check_render_args(args.scene, args.seed, args.loops, 0, args.frames_per_loop, args.size, None, args.lane_wander)
-    return (sources.scene_keyframes(args.scene, args.seed, args.loops, args.frames_per_loop, args.spacing, args.angle, size,
-                                    args.lane_wander),
-            sources.scene_source(args.scene, args.seed, args.loops, args.frames_per_loop, size, args.lane_wander))
+    size = check_render_args(
+        args.scene, args.seed, args.loops, 0, args.frames_per_loop, args.size, None, args.lane_wander
+    )
+    return (
+        sources.scene_keyframes(
+            args.scene, args.seed, args.loops, args.frames_per_loop, args.spacing, args.angle, size, args.lane_wander
+        ),
+        sources.scene_source(args.scene, args.seed, args.loops, args.frames_per_loop, size, args.lane_wander),
+    )
 
 
 def _info(args: argparse.Namespace) -> int:
@@ -111,7 +166,9 @@ def _info(args: argparse.Namespace) -> int:
     m = KeyframeMap.load(args.map)
     lo, hi = m.t.min(axis=0), m.t.max(axis=0)
     print(f"{args.map}: {len(m)} keyframes, {m.num_points} points ({m.num_points / len(m):.0f} a keyframe)")
-    print(f"  keyframe positions: x {lo[0]:.1f}..{hi[0]:.1f} m, y {lo[1]:.1f}..{hi[1]:.1f} m, z {lo[2]:.1f}..{hi[2]:.1f} m")
+    print(
+        f"  keyframe positions: x {lo[0]:.1f}..{hi[0]:.1f} m, y {lo[1]:.1f}..{hi[1]:.1f} m, z {lo[2]:.1f}..{hi[2]:.1f} m"
+    )
     print(f"  features: {m.features.to_dict()}")
     print(f"  source: {m.source}")
     return 0

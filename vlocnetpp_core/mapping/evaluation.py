@@ -19,8 +19,10 @@ from vlocnetpp_core import geometry
 from vlocnetpp_core.evaluation.metrics import DEFAULT_THRESHOLDS, evaluate_sequences
 
 STRUCTURE_NAME = "structure-based"
-STRUCTURE_METHOD = ("the 4 map keyframes most similar to the image (gradient thumbnails), SIFT ratio-test matches, "
-                    "AP3P RANSAC + Levenberg-Marquardt; the most similar keyframe's pose under 20 inliers; no network")
+STRUCTURE_METHOD = (
+    "the 4 map keyframes most similar to the image (gradient thumbnails), SIFT ratio-test matches, "
+    "AP3P RANSAC + Levenberg-Marquardt; the most similar keyframe's pose under 20 inliers; no network"
+)
 
 
 @dataclass
@@ -52,8 +54,18 @@ def with_poses(results: Sequence, poses: Sequence[tuple[np.ndarray, np.ndarray]]
     for r, (t, q) in zip(results, poses, strict=True):
         if len(t) != len(r.stamps):
             raise ValueError(f"{r.name}: {len(t)} poses for {len(r.stamps)} frames")
-        out.append(replace(r, pred_t=np.asarray(t, np.float64), pred_q=np.asarray(q, np.float64), rel_t=None, rel_q=None,
-                           confusion=None, ms=None, samples=()))
+        out.append(
+            replace(
+                r,
+                pred_t=np.asarray(t, np.float64),
+                pred_q=np.asarray(q, np.float64),
+                rel_t=None,
+                rel_q=None,
+                confusion=None,
+                ms=None,
+                samples=(),
+            )
+        )
     return out
 
 
@@ -72,12 +84,18 @@ def calibration(errors: np.ndarray) -> dict:
     errors (1 when calibrated) and the share within 1 and 2 sigma per axis (0.683, 0.954 for Gaussian errors)."""
     if len(errors) == 0:
         return {"frames": 0, "rms_position": None, "rms_rotation": None, "within_1_sigma": None, "within_2_sigma": None}
-    return {"frames": len(errors), "rms_position": float(np.sqrt(np.mean(errors[:, :3] ** 2))),
-            "rms_rotation": float(np.sqrt(np.mean(errors[:, 3:] ** 2))),
-            "within_1_sigma": float(np.mean(np.abs(errors) <= 1)), "within_2_sigma": float(np.mean(np.abs(errors) <= 2))}
+    return {
+        "frames": len(errors),
+        "rms_position": float(np.sqrt(np.mean(errors[:, :3] ** 2))),
+        "rms_rotation": float(np.sqrt(np.mean(errors[:, 3:] ** 2))),
+        "within_1_sigma": float(np.mean(np.abs(errors) <= 1)),
+        "within_2_sigma": float(np.mean(np.abs(errors) <= 2)),
+    }
 
 
-def add_pose_refined(report: dict, results: Sequence, poses: Sequence[tuple[np.ndarray, np.ndarray]], thresholds=DEFAULT_THRESHOLDS) -> dict:
+def add_pose_refined(
+    report: dict, results: Sequence, poses: Sequence[tuple[np.ndarray, np.ndarray]], thresholds=DEFAULT_THRESHOLDS
+) -> dict:
     """Store the metrics of the published poses ``poses`` (per sequence ``(t (N_k, 3), q (N_k, 4))``) on the frames of
     ``results`` as ``pose_refined``, overall and per sequence (the keys of ``pose``)."""
     scored = evaluate_sequences(with_poses(results, poses), thresholds, [1.0])
@@ -91,11 +109,16 @@ def add_refined(report: dict, results: Sequence, tracks: Sequence[RefinedTrack],
     """Store the published poses' metrics as ``pose_refined`` (overall and per sequence) and ``overall.refinement``."""
     add_pose_refined(report, results, [(tr.t, tr.q) for tr in tracks], thresholds)
     sources = Counter(s for tr in tracks for s in tr.source)
-    statuses = Counter(s for tr in tracks for s, src in zip(tr.status, tr.source, strict=True) if s is not None and src != "refined")
+    statuses = Counter(
+        s for tr in tracks for s, src in zip(tr.status, tr.source, strict=True) if s is not None and src != "refined"
+    )
     n = sum(sources.values())
     refined = [(r, tr, np.array(tr.source) == "refined") for r, tr in zip(results, tracks, strict=True)]
-    errors = [normalised_errors(r.true_t[m], r.true_q[m], np.array(tr.t)[m], np.array(tr.q)[m], np.array(tr.sigma)[m])
-              for r, tr, m in refined if m.any()]
+    errors = [
+        normalised_errors(r.true_t[m], r.true_q[m], np.array(tr.t)[m], np.array(tr.q)[m], np.array(tr.sigma)[m])
+        for r, tr, m in refined
+        if m.any()
+    ]
     inliers = [i for tr in tracks for i, s in zip(tr.inliers, tr.source, strict=True) if s == "refined"]
     report["overall"]["refinement"] = {
         "share": {s: sources.get(s, 0) / max(n, 1) for s in ("refined", "propagated", "network")},
@@ -106,13 +129,22 @@ def add_refined(report: dict, results: Sequence, tracks: Sequence[RefinedTrack],
     return report
 
 
-def add_structure_baseline(report: dict, results: Sequence, poses: Sequence[tuple[np.ndarray, np.ndarray]], map_source: str,
-                           keyframes: int, thresholds=DEFAULT_THRESHOLDS) -> dict:
+def add_structure_baseline(
+    report: dict,
+    results: Sequence,
+    poses: Sequence[tuple[np.ndarray, np.ndarray]],
+    map_source: str,
+    keyframes: int,
+    thresholds=DEFAULT_THRESHOLDS,
+) -> dict:
     """Score the structure-based baseline's ``poses`` (per sequence) on the frames of ``results`` as
     ``report["structure_baseline"]``."""
     scored = evaluate_sequences(with_poses(results, poses), thresholds, [1.0])
     report["structure_baseline"] = {
-        "name": STRUCTURE_NAME, "method": STRUCTURE_METHOD, "map": map_source, "map_keyframes": keyframes,
+        "name": STRUCTURE_NAME,
+        "method": STRUCTURE_METHOD,
+        "map": map_source,
+        "map_keyframes": keyframes,
         "overall": {"pose": scored["overall"]["pose"]},
         "per_sequence": {name: {"pose": part["pose"]} for name, part in scored["per_sequence"].items()},
     }
@@ -125,12 +157,16 @@ def refinement_lines(report: dict) -> list[str]:
     if not ref:
         return []
     share, cal = ref["share"], ref["calibration"]
-    lines = [f"refinement: {100 * share['refined']:.1f} % of frames refined, {100 * share['propagated']:.1f} % propagated, "
-             f"{100 * share['network']:.1f} % the network's pose; median {ref['median_inliers'] or 0:.0f} inliers"]
+    lines = [
+        f"refinement: {100 * share['refined']:.1f} % of frames refined, {100 * share['propagated']:.1f} % propagated, "
+        f"{100 * share['network']:.1f} % the network's pose; median {ref['median_inliers'] or 0:.0f} inliers"
+    ]
     if ref["fallback_reasons"]:
         lines.append("  not refined: " + ", ".join(f"{k} {v}" for k, v in ref["fallback_reasons"].items()))
     if cal["frames"]:
-        lines.append(f"  covariance of refined poses: normalised RMS position {cal['rms_position']:.2f}, rotation "
-                     f"{cal['rms_rotation']:.2f} (1 = calibrated); within 1 / 2 sigma {100 * cal['within_1_sigma']:.0f} / "
-                     f"{100 * cal['within_2_sigma']:.0f} % (68 / 95 for Gaussian errors)")
+        lines.append(
+            f"  covariance of refined poses: normalised RMS position {cal['rms_position']:.2f}, rotation "
+            f"{cal['rms_rotation']:.2f} (1 = calibrated); within 1 / 2 sigma {100 * cal['within_1_sigma']:.0f} / "
+            f"{100 * cal['within_2_sigma']:.0f} % (68 / 95 for Gaussian errors)"
+        )
     return lines

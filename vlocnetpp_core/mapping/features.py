@@ -29,7 +29,12 @@ class FeatureConfig:
     ratio: float = 0.8
 
     def to_dict(self) -> dict:
-        return {"kind": "sift", "max_features": self.max_features, "contrast_threshold": self.contrast_threshold, "ratio": self.ratio}
+        return {
+            "kind": "sift",
+            "max_features": self.max_features,
+            "contrast_threshold": self.contrast_threshold,
+            "ratio": self.ratio,
+        }
 
     @classmethod
     def from_dict(cls, d: dict) -> FeatureConfig:
@@ -53,7 +58,9 @@ class Features:
         return Features(self.uv[keep], self.descriptors[keep])
 
 
-DYNAMIC_CLASS = CLASS_NAMES.index("Dynamic")  # cars and people: where they stood in the map says nothing of a later visit
+DYNAMIC_CLASS = CLASS_NAMES.index(
+    "Dynamic"
+)  # cars and people: where they stood in the map says nothing of a later visit
 
 
 def off_dynamic(uv: np.ndarray, labels: np.ndarray) -> np.ndarray:
@@ -95,7 +102,11 @@ def match(query: np.ndarray, train: np.ndarray, ratio: float) -> tuple[np.ndarra
         return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.float32)
     q, t = query.astype(np.float32), train.astype(np.float32)
     # (N, M) squared distances; OpenCV's product rather than numpy's, whose BLAS threads would spin beside the network
-    d2 = cv2.gemm(q, t, -2.0, None, 0.0, flags=cv2.GEMM_2_T) + np.einsum("ij,ij->i", q, q)[:, None] + np.einsum("ij,ij->i", t, t)[None, :]
+    d2 = (
+        cv2.gemm(q, t, -2.0, None, 0.0, flags=cv2.GEMM_2_T)
+        + np.einsum("ij,ij->i", q, q)[:, None]
+        + np.einsum("ij,ij->i", t, t)[None, :]
+    )
     rows = np.arange(len(q))
     nearest = d2.argmin(axis=1)
     best = np.maximum(d2[rows, nearest], 0.0)

@@ -48,9 +48,21 @@ class KeyframeMap:
 
     def __post_init__(self) -> None:
         k, n = len(self.t), len(self.uv)
-        shapes = {"t": (k, 3), "q": (k, 4), "intrinsics": (k, 4), "image_sizes": (k, 2), "offsets": (k + 1,),
-                  "uv": (n, 2), "points": (n, 3), "descriptors": (n, DESCRIPTOR_SIZE)}
-        bad = [f"{name} {getattr(self, name).shape} (want {want})" for name, want in shapes.items() if getattr(self, name).shape != want]
+        shapes = {
+            "t": (k, 3),
+            "q": (k, 4),
+            "intrinsics": (k, 4),
+            "image_sizes": (k, 2),
+            "offsets": (k + 1,),
+            "uv": (n, 2),
+            "points": (n, 3),
+            "descriptors": (n, DESCRIPTOR_SIZE),
+        }
+        bad = [
+            f"{name} {getattr(self, name).shape} (want {want})"
+            for name, want in shapes.items()
+            if getattr(self, name).shape != want
+        ]
         if k == 0:
             bad.append("no keyframes")
         elif self.thumbnails.ndim != 2 or len(self.thumbnails) != k:
@@ -107,7 +119,9 @@ class KeyframeMap:
         except (OSError, ValueError, KeyError, zipfile.BadZipFile) as err:
             raise DataError(path, f"not a keyframe map written by 'vlocnetpp map build' ({err})") from None
         if meta.get("format_version") != FORMAT_VERSION:
-            raise DataError(path, f"map format version {meta.get('format_version')!r}, this version reads {FORMAT_VERSION}")
+            raise DataError(
+                path, f"map format version {meta.get('format_version')!r}, this version reads {FORMAT_VERSION}"
+            )
         try:
             return cls(**arrays, features=FeatureConfig.from_dict(meta["features"]), source=str(meta.get("source", "")))
         except (ValueError, KeyError) as err:

@@ -35,14 +35,24 @@ class PoseSolution:
     covariance: np.ndarray
 
 
-def solve_pnp(uv: np.ndarray, points: np.ndarray, K: np.ndarray, ransac_px: float = 2.0, iterations: int = 300) -> PoseSolution | None:
+def solve_pnp(
+    uv: np.ndarray, points: np.ndarray, K: np.ndarray, ransac_px: float = 2.0, iterations: int = 300
+) -> PoseSolution | None:
     """The pose of the camera with intrinsics ``K (3, 3)`` that sees map points ``points (N, 3)`` at pixels
     ``uv (N, 2)``; None when there are too few correspondences or RANSAC finds no consistent set."""
     if len(uv) < MIN_CORRESPONDENCES:
         return None
     obj, img = np.ascontiguousarray(points, np.float64), np.ascontiguousarray(uv, np.float64)
-    ok, rvec, tvec, inliers = cv2.solvePnPRansac(obj, img, K, None, iterationsCount=iterations, reprojectionError=ransac_px,
-                                                 confidence=0.999, flags=cv2.SOLVEPNP_AP3P)
+    ok, rvec, tvec, inliers = cv2.solvePnPRansac(
+        obj,
+        img,
+        K,
+        None,
+        iterationsCount=iterations,
+        reprojectionError=ransac_px,
+        confidence=0.999,
+        flags=cv2.SOLVEPNP_AP3P,
+    )
     if not ok or inliers is None or len(inliers) < MIN_CORRESPONDENCES:
         return None
     inliers = inliers[:, 0]
@@ -74,8 +84,9 @@ def _residuals_and_jacobian(X: np.ndarray, uv: np.ndarray, K: np.ndarray, R_wc: 
     proj = np.stack((fx * p[:, 0] / z + K[0, 2], fy * p[:, 1] / z + K[1, 2]), 1)
     residual = (proj - uv).ravel()
     zero = np.zeros_like(z)
-    d_proj = np.stack((np.stack((fx / z, zero, -fx * p[:, 0] / z**2), 1),
-                       np.stack((zero, fy / z, -fy * p[:, 1] / z**2), 1)), 1)  # (n, 2, 3) d pixel / d camera point
+    d_proj = np.stack(
+        (np.stack((fx / z, zero, -fx * p[:, 0] / z**2), 1), np.stack((zero, fy / z, -fy * p[:, 1] / z**2), 1)), 1
+    )  # (n, 2, 3) d pixel / d camera point
     skew = np.zeros((len(d), 3, 3))
     skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -d[:, 2], d[:, 1], -d[:, 0]
     skew[:, 1, 0], skew[:, 2, 0], skew[:, 2, 1] = d[:, 2], -d[:, 1], d[:, 0]

@@ -23,8 +23,16 @@ from vlocnetpp_core.mapping.features import FeatureExtractor, Features, match, t
 from vlocnetpp_core.mapping.keyframe_map import KeyframeMap
 from vlocnetpp_core.mapping.pnp import PoseSolution, solve_pnp
 
-STATUSES = ("refined", "no_features", "no_keyframes", "too_few_matches", "no_solution", "too_few_inliers",
-            "reprojection", "disagrees")
+STATUSES = (
+    "refined",
+    "no_features",
+    "no_keyframes",
+    "too_few_matches",
+    "no_solution",
+    "too_few_inliers",
+    "reprojection",
+    "disagrees",
+)
 
 
 @dataclass(frozen=True)
@@ -73,7 +81,9 @@ class Refiner:
         self.map = keyframe_map
         self.config = config
         self._extractor = FeatureExtractor(keyframe_map.features)
-        self._thumbnails = ReferenceSet(keyframe_map.thumbnails.astype(np.float32), keyframe_map.t, keyframe_map.q, "map keyframes")
+        self._thumbnails = ReferenceSet(
+            keyframe_map.thumbnails.astype(np.float32), keyframe_map.t, keyframe_map.q, "map keyframes"
+        )
 
     @classmethod
     def from_file(cls, path, config: RefinerConfig = RefinerConfig()) -> Refiner:
@@ -98,11 +108,17 @@ class Refiner:
             intrinsics = intrinsics.resized(*size)
         return grey, intrinsics.matrix()
 
-    def keyframes_for(self, network: tuple[np.ndarray, np.ndarray], odometry: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+    def keyframes_for(
+        self, network: tuple[np.ndarray, np.ndarray], odometry: tuple[np.ndarray, np.ndarray] | None = None
+    ) -> np.ndarray:
         """The keyframes :meth:`refine` matches: those near the odometry's prediction, then those near the network's
         pose (``(t (3,), q (4,))`` each, ``T_map,cam``), ``config.keyframes`` at most."""
         c = self.config
-        near = [self.map.near(*prior, c.keyframes, c.search_radius_m, c.search_angle_deg) for prior in (odometry, network) if prior is not None]
+        near = [
+            self.map.near(*prior, c.keyframes, c.search_radius_m, c.search_angle_deg)
+            for prior in (odometry, network)
+            if prior is not None
+        ]
         return np.array(list(dict.fromkeys(np.concatenate(near).tolist()))[: c.keyframes], np.int64)
 
     def candidates(self, guess: tuple[np.ndarray, np.ndarray], extra: int = 2) -> np.ndarray:
@@ -111,14 +127,25 @@ class Refiner:
         c = self.config
         return self.map.near(*guess, c.keyframes + extra, c.search_radius_m, c.search_angle_deg)
 
-    def prematch(self, features: Features, keyframes: np.ndarray) -> dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    def prematch(
+        self, features: Features, keyframes: np.ndarray
+    ) -> dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]]:
         """The ratio-test matches of ``features`` with each of ``keyframes`` (:func:`.features.match`), by keyframe:
         what :meth:`refine` reuses instead of matching again."""
-        return {int(k): match(features.descriptors, self.map.keyframe(int(k))[2], self.map.features.ratio) for k in keyframes}
+        return {
+            int(k): match(features.descriptors, self.map.keyframe(int(k))[2], self.map.features.ratio)
+            for k in keyframes
+        }
 
-    def refine(self, features: Features, K: np.ndarray, network: tuple[np.ndarray, np.ndarray],
-               odometry: tuple[np.ndarray, np.ndarray] | None = None, keep: np.ndarray | None = None,
-               matches: dict | None = None) -> Refinement:
+    def refine(
+        self,
+        features: Features,
+        K: np.ndarray,
+        network: tuple[np.ndarray, np.ndarray],
+        odometry: tuple[np.ndarray, np.ndarray] | None = None,
+        keep: np.ndarray | None = None,
+        matches: dict | None = None,
+    ) -> Refinement:
         """Refine the frame with ``features`` and intrinsics ``K (3, 3)`` given the network's pose and the
         odometry's prediction (``(t (3,), q (4,))`` each, ``T_map,cam``); only the features where ``keep (N,) bool``
         (all: None); ``matches``: :meth:`prematch` of some keyframes (the same result as matching them here)."""
@@ -128,12 +155,17 @@ class Refiner:
         if result.solution is None or result.status != "refined":
             return result
         s = result.solution
-        agrees = [prior is not None and _within(s, prior, limits) for prior, limits in ((odometry, c.odometry_agreement), (network, c.network_agreement))]
+        agrees = [
+            prior is not None and _within(s, prior, limits)
+            for prior, limits in ((odometry, c.odometry_agreement), (network, c.network_agreement))
+        ]
         if not any(agrees):
             return Refinement("disagrees", s, keyframes)
         return result
 
-    def locate(self, features: Features, thumbnail: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray, Refinement]:
+    def locate(
+        self, features: Features, thumbnail: np.ndarray, K: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, Refinement]:
         """The structure-based baseline: ``(t, q, refinement)``, the PnP pose against the keyframes most similar to
         the image's retrieval descriptor ``thumbnail (288,)``, or the most similar keyframe's pose when PnP fails."""
         keyframes = self._thumbnails.ranked(thumbnail, self.config.keyframes)
@@ -142,14 +174,22 @@ class Refiner:
             return result.solution.t, result.solution.q, result
         return self.map.t[keyframes[0]].copy(), self.map.q[keyframes[0]].copy(), result
 
-    def locate_image(self, image: np.ndarray, intrinsics, thumbnail: np.ndarray) -> tuple[np.ndarray, np.ndarray, Refinement]:
+    def locate_image(
+        self, image: np.ndarray, intrinsics, thumbnail: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, Refinement]:
         """:meth:`locate` of an ``(H, W, 3)`` RGB image with its :class:`~vlocnetpp_core.camera.intrinsics.Intrinsics` and
         retrieval descriptor ``thumbnail (288,)`` (:func:`vlocnetpp_core.evaluation.retrieval.describe` of it)."""
         grey, K = self.prepare(image, intrinsics)
         return self.locate(self.extract(grey), thumbnail, K)
 
-    def _solve(self, features: Features, K: np.ndarray, keyframes: np.ndarray, keep: np.ndarray | None = None,
-               matches: dict | None = None) -> Refinement:
+    def _solve(
+        self,
+        features: Features,
+        K: np.ndarray,
+        keyframes: np.ndarray,
+        keep: np.ndarray | None = None,
+        matches: dict | None = None,
+    ) -> Refinement:
         """Match ``features`` (where ``keep``) with ``keyframes``, PnP, and the inlier and reprojection checks."""
         c = self.config
         if (len(features) if keep is None else int(np.count_nonzero(keep))) < c.min_inliers:
@@ -170,8 +210,9 @@ class Refiner:
         solution.covariance = factors[:, None] * solution.covariance * factors[None, :]
         return Refinement("refined", solution, keyframes)
 
-    def _correspondences(self, features: Features, keyframes: np.ndarray, keep: np.ndarray | None,
-                         matches: dict) -> tuple[np.ndarray, np.ndarray]:
+    def _correspondences(
+        self, features: Features, keyframes: np.ndarray, keep: np.ndarray | None, matches: dict
+    ) -> tuple[np.ndarray, np.ndarray]:
         """``uv (n, 2)`` of the frame and ``points (n, 3)`` of the map: per query keypoint (where ``keep``) its closest
         ratio-test match over ``keyframes``. A keypoint's match does not depend on the other keypoints, so leaving
         keypoints out after matching gives what matching without them gives."""
@@ -180,7 +221,9 @@ class Refiner:
         for k in keyframes:
             _, points, descriptors = self.map.keyframe(int(k))
             found = matches.get(int(k))
-            qi, ki, dist = found if found is not None else match(features.descriptors, descriptors, self.map.features.ratio)
+            qi, ki, dist = (
+                found if found is not None else match(features.descriptors, descriptors, self.map.features.ratio)
+            )
             closer = dist < best_distance[qi]
             best_distance[qi[closer]], best_point[qi[closer]] = dist[closer], points[ki[closer]]
         found = np.isfinite(best_distance) if keep is None else np.isfinite(best_distance) & keep
@@ -191,4 +234,7 @@ def _within(solution: PoseSolution, prior: tuple[np.ndarray, np.ndarray], limits
     """Whether ``solution`` is within ``limits`` (metres, degrees) of ``prior`` ``(t, q)``."""
     t, q = prior
     dot = abs(float(np.dot(solution.q, q)))
-    return float(np.linalg.norm(solution.t - t)) <= limits[0] and float(np.degrees(2 * np.arccos(min(dot, 1.0)))) <= limits[1]
+    return (
+        float(np.linalg.norm(solution.t - t)) <= limits[0]
+        and float(np.degrees(2 * np.arccos(min(dot, 1.0)))) <= limits[1]
+    )

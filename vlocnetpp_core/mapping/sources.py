@@ -94,14 +94,28 @@ class SceneKeyframes:
         out = []
         for i in self.ids:
             written = _written_values(visit, i)  # the renderer is given exactly the pose that is written
-            rgb, labels, depth = render_frame(campus, written[:3].tolist(), written[3:].tolist(), K, visit.lighting, visit.objects_at(i))
-            depth = np.where(np.isfinite(depth) & (depth > 0), depth, 0.0).astype(np.float32)  # as the dataset reader gives it
-            out.append(Frame(rgb, t[i].copy(), q[i].copy(), depth, labels, K, 0.0, self.loop, f"loop {self.loop} frame {i}"))
+            rgb, labels, depth = render_frame(
+                campus, written[:3].tolist(), written[3:].tolist(), K, visit.lighting, visit.objects_at(i)
+            )
+            depth = np.where(np.isfinite(depth) & (depth > 0), depth, 0.0).astype(
+                np.float32
+            )  # as the dataset reader gives it
+            out.append(
+                Frame(rgb, t[i].copy(), q[i].copy(), depth, labels, K, 0.0, self.loop, f"loop {self.loop} frame {i}")
+            )
         return out
 
 
-def scene_keyframes(scene: str, seed: int, loops: int, frames_per_loop: int, spacing_m: float, angle_deg: float,
-                    size: tuple[int, int] = (320, 180), lane_wander: float = 0.0) -> list[SceneKeyframes]:
+def scene_keyframes(
+    scene: str,
+    seed: int,
+    loops: int,
+    frames_per_loop: int,
+    spacing_m: float,
+    angle_deg: float,
+    size: tuple[int, int] = (320, 180),
+    lane_wander: float = 0.0,
+) -> list[SceneKeyframes]:
     """The keyframe sequences of the ``loops`` train visits of a synthetic scene (module docstring), split into
     sequences where the dataset reader would split them."""
     from vlocnetpp_core.data.deeploc import MAX_ID_GAP, MAX_JUMP_DEG, MAX_JUMP_M, split_sequences
@@ -111,13 +125,22 @@ def scene_keyframes(scene: str, seed: int, loops: int, frames_per_loop: int, spa
         visit = _visit(scene, seed, loop, frames_per_loop, lane_wander)
         t, q = written_poses(visit)
         for rng in split_sequences(np.arange(len(t)), t, q, MAX_ID_GAP, MAX_JUMP_M, MAX_JUMP_DEG):
-            ids = tuple(rng[p] for p in keyframe_positions(t[rng.start:rng.stop], q[rng.start:rng.stop], spacing_m, angle_deg))
+            ids = tuple(
+                rng[p]
+                for p in keyframe_positions(t[rng.start : rng.stop], q[rng.start : rng.stop], spacing_m, angle_deg)
+            )
             out.append(SceneKeyframes(scene, seed, loop, frames_per_loop, tuple(size), float(lane_wander), ids))
     return out
 
 
-def scene_source(scene: str, seed: int, loops: int, frames_per_loop: int, size: tuple[int, int] = (320, 180),
-                 lane_wander: float = 0.0) -> str:
+def scene_source(
+    scene: str,
+    seed: int,
+    loops: int,
+    frames_per_loop: int,
+    size: tuple[int, int] = (320, 180),
+    lane_wander: float = 0.0,
+) -> str:
     """Where :func:`scene_keyframes` of these arguments come from, in words (a map's ``source``)."""
     wander = f", lane wander {lane_wander:g} m" if lane_wander else ""
     return f"scene {scene} seed {seed}, {loops} train visits of {frames_per_loop} frames at {size[0]}x{size[1]}{wander}"

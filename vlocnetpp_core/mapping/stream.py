@@ -86,8 +86,15 @@ class RefinedStream:
             self._pending[0].result()
             self._pending = None
 
-    def finish(self, net_t: np.ndarray, net_q: np.ndarray, rel_t: np.ndarray, rel_q: np.ndarray, continued: bool,
-               mask: np.ndarray | None = None) -> StreamPose:
+    def finish(
+        self,
+        net_t: np.ndarray,
+        net_q: np.ndarray,
+        rel_t: np.ndarray,
+        rel_q: np.ndarray,
+        continued: bool,
+        mask: np.ndarray | None = None,
+    ) -> StreamPose:
         """The pose of the started frame given the network's pose and relative pose; ``continued`` False on a first
         frame (the relative pose means nothing); ``mask (H, W)``: the network's class ids at the image's resolution,
         whose moving objects are left out of the matching (None: a pose-only model)."""
@@ -102,14 +109,20 @@ class RefinedStream:
         pending, self._pending = self._pending, None
         if pending is None:  # between refinements
             self._anchor = prediction
-            return self._published(StreamPose(prediction[0], prediction[1], prediction[2], "propagated", None, 0), rel_t, rel_q)
+            return self._published(
+                StreamPose(prediction[0], prediction[1], prediction[2], "propagated", None, 0), rel_t, rel_q
+            )
         features, matches = pending[0].result()
         keep = None if mask is None else off_dynamic(features.uv * (mask.shape[1] / pending[2]), mask)
-        result = self.refiner.refine(features, pending[1], (net_t, net_q), None if prediction is None else prediction[:2], keep, matches)
+        result = self.refiner.refine(
+            features, pending[1], (net_t, net_q), None if prediction is None else prediction[:2], keep, matches
+        )
         if result.accepted:
             s = result.solution
             self._anchor, self._steps = (s.t, s.q, s.covariance), 0
-            return self._published(StreamPose(s.t, s.q, s.covariance, "refined", result.status, result.inliers), rel_t, rel_q)
+            return self._published(
+                StreamPose(s.t, s.q, s.covariance, "refined", result.status, result.inliers), rel_t, rel_q
+            )
         self._anchor = prediction if prediction is not None and self._steps < MAX_PREDICTION_STEPS else None
         return self._published(StreamPose(net_t, net_q, None, "network", result.status, result.inliers), rel_t, rel_q)
 

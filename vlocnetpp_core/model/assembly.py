@@ -44,14 +44,20 @@ def init_rule(run: str, source: str | None, n_inits: int) -> str:
     return spec.init_rules.get(source or "", "whole")
 
 
-def init_tensors(rule: str, source: str | None, tensors: dict[str, torch.Tensor], own: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+def init_tensors(
+    rule: str, source: str | None, tensors: dict[str, torch.Tensor], own: dict[str, torch.Tensor]
+) -> dict[str, torch.Tensor]:
     """The tensors of a checkpoint (of stage ``source``) that ``rule`` loads into a network whose state dict is ``own``."""
     if rule == "encoder":
         return semantic_encoder_as_global_stream(tensors, own)
     if rule == "trunk":
         return {k: v for k, v in tensors.items() if k.startswith("trunk.")}
     if rule == "streams":
-        return {k: v for k, v in tensors.items() if k in own and (source == "mtl" or STREAM_SOURCE.get(stream_of(k)) == source)}
+        return {
+            k: v
+            for k, v in tensors.items()
+            if k in own and (source == "mtl" or STREAM_SOURCE.get(stream_of(k)) == source)
+        }
     return {k: v for k, v in tensors.items() if k in own}
 
 
@@ -83,12 +89,17 @@ def trained_tasks(training: dict, model_tasks: Iterable[str] = TASKS) -> set[str
     tasks = set(STAGE_SPECS[stage].tasks) if training.get("step", 1) > 0 else set()
     inits = training.get("init") or []
     for source in inits:
-        if source.get("stage") in STAGE_SPECS and init_rule(stage, source.get("stage"), len(inits)) in TASK_CARRYING_RULES:
+        if (
+            source.get("stage") in STAGE_SPECS
+            and init_rule(stage, source.get("stage"), len(inits)) in TASK_CARRYING_RULES
+        ):
             tasks |= set(STAGE_SPECS[source["stage"]].tasks)
     return tasks & set(model_tasks)
 
 
-def semantic_encoder_as_global_stream(tensors: dict[str, torch.Tensor], own: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+def semantic_encoder_as_global_stream(
+    tensors: dict[str, torch.Tensor], own: dict[str, torch.Tensor]
+) -> dict[str, torch.Tensor]:
     """An stl-seg encoder as the pre-trained backbone of stl-loc (our stand-in for ImageNet weights).
 
     ``semantic.{stem,res2,res3}.*`` -> ``trunk.*`` and ``semantic.{res4,res5}.*`` ->

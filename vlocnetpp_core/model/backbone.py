@@ -25,8 +25,15 @@ class PreActBottleneck(nn.Module):
             ``conv2_dilated`` with this dilation has the other half (AdapNet multiscale block).
     """
 
-    def __init__(self, in_channels: int, width: int, out_channels: int, stride: int = 1, dilation: int = 1,
-                 multiscale_dilation: int | None = None):
+    def __init__(
+        self,
+        in_channels: int,
+        width: int,
+        out_channels: int,
+        stride: int = 1,
+        dilation: int = 1,
+        multiscale_dilation: int | None = None,
+    ):
         super().__init__()
         self.bn1 = nn.BatchNorm2d(in_channels)
         self.conv1 = nn.Conv2d(in_channels, width, 1, bias=False)
@@ -56,15 +63,29 @@ class PreActBottleneck(nn.Module):
         return y + identity
 
 
-def make_stage(in_channels: int, width: int, out_channels: int, depth: int, stride: int, dilation: int = 1,
-               multiscale: tuple[int | None, ...] | None = None) -> nn.Sequential:
+def make_stage(
+    in_channels: int,
+    width: int,
+    out_channels: int,
+    depth: int,
+    stride: int,
+    dilation: int = 1,
+    multiscale: tuple[int | None, ...] | None = None,
+) -> nn.Sequential:
     """``depth`` bottlenecks; the first has ``stride`` and the projection shortcut.
 
     ``multiscale[i]`` is the parallel-branch dilation of block ``i`` (``None``: a plain block).
     """
     multiscale = multiscale or (None,) * depth
     blocks = [
-        PreActBottleneck(in_channels if i == 0 else out_channels, width, out_channels, stride if i == 0 else 1, dilation, multiscale[i])
+        PreActBottleneck(
+            in_channels if i == 0 else out_channels,
+            width,
+            out_channels,
+            stride if i == 0 else 1,
+            dilation,
+            multiscale[i],
+        )
         for i in range(depth)
     ]
     return nn.Sequential(*blocks)

@@ -81,7 +81,9 @@ class ModelConfig:
     warping: bool = True
     semantic_stream: bool = True
     global_downsample: int = 1  # the global stream pools the trunk's Res3 map by this factor
-    global_pose_pooling: str = "average"  # "average" (paper: global average pooling) or "flatten" (whole Res5c map into fc1)
+    global_pose_pooling: str = (
+        "average"  # "average" (paper: global average pooling) or "flatten" (whole Res5c map into fc1)
+    )
     global_pose_anchors: int = 0  # position anchors of the global pose head (0: the paper's direct regression)
     global_rotation_anchors: int = 0  # rotation anchors of the global pose head (0: the paper's direct regression)
     odometry_pose_pooling: str = "average"  # "average" (paper) or "flatten" (the odometry's whole Res5 map into fc1)
@@ -96,14 +98,24 @@ class ModelConfig:
         out = []
         w, h = self.input_size
         if w <= 0 or h <= 0 or w % 16 or h % 16:
-            out.append(f"input_size must be positive multiples of 16 (semantic stream at output stride 16), got {w}x{h}")
+            out.append(
+                f"input_size must be positive multiples of 16 (semantic stream at output stride 16), got {w}x{h}"
+            )
         if len(self.widths) != 4 or len(self.depths) != 4:
             out.append("widths and depths need 4 entries (Res2..Res5)")
         elif min(self.depths) < 1 or min(self.widths) < 2 or any(v % 2 for v in self.widths):
             out.append("depths must be >= 1 and widths even and >= 2")
         elif not 1 <= self.res4_fusion_block <= self.depths[2]:
             out.append(f"res4_fusion_block must be in 1..{self.depths[2]} (the number of Res4 blocks)")
-        sizes = ("num_classes", "stem_width", "expansion", "fc_width", "depth_width", "semantic_res4_dilation", "global_downsample")
+        sizes = (
+            "num_classes",
+            "stem_width",
+            "expansion",
+            "fc_width",
+            "depth_width",
+            "semantic_res4_dilation",
+            "global_downsample",
+        )
         out += [f"{k} must be >= 1, got {getattr(self, k)}" for k in sizes if getattr(self, k) < 1]
         if len(self.semantic_res5_dilations) < 1 or min(self.semantic_res5_dilations) < 1:
             out.append("semantic_res5_dilations needs at least one entry, all >= 1")
@@ -120,9 +132,11 @@ class ModelConfig:
                 out.append(f"{key} must be one of {list(POSE_POOLINGS)}, got {getattr(self, key)!r}")
         needs_semantics = [k for k in ("warping", "semantic_fusion") if getattr(self, k)]
         if not self.semantic_stream and needs_semantics:
-            out.append(f"semantic_stream is false (a pose-only network) but {' and '.join(needs_semantics)} "
-                       f"{'is' if len(needs_semantics) == 1 else 'are'} true: without the semantic stream there are no "
-                       f"semantic features to warp or fuse; set {' and '.join(f'{k}: false' for k in needs_semantics)}")
+            out.append(
+                f"semantic_stream is false (a pose-only network) but {' and '.join(needs_semantics)} "
+                f"{'is' if len(needs_semantics) == 1 else 'are'} true: without the semantic stream there are no "
+                f"semantic features to warp or fuse; set {' and '.join(f'{k}: false' for k in needs_semantics)}"
+            )
         return out
 
     @property
@@ -243,7 +257,9 @@ def _config_path(text: str, next_to: Path | None = None) -> Path:
     if text in BUILTIN_CONFIGS:
         folder = config_dir()
         if folder is None:
-            raise UserError(f"cannot find the shipped config folder holding {text}.yaml (looked above {Path(__file__).parent})")
+            raise UserError(
+                f"cannot find the shipped config folder holding {text}.yaml (looked above {Path(__file__).parent})"
+            )
         path = folder / f"{text}.yaml"
     else:
         path = Path(text) if next_to is None else next_to.parent / text

@@ -37,8 +37,15 @@ class PoseHead(nn.Module):
     hemisphere of the best-scored one, normalised.
     """
 
-    def __init__(self, in_channels: int, fc_width: int, dropout: float, flatten_size: tuple[int, int] | None = None,
-                 anchors: int = 0, rotation_anchors: int = 0):
+    def __init__(
+        self,
+        in_channels: int,
+        fc_width: int,
+        dropout: float,
+        flatten_size: tuple[int, int] | None = None,
+        anchors: int = 0,
+        rotation_anchors: int = 0,
+    ):
         super().__init__()
         self.norm = PostNorm(in_channels)
         self.flatten_size = flatten_size
@@ -92,9 +99,11 @@ class PoseHead(nn.Module):
         if self.flatten_size is None:
             h = self.norm(x).mean(dim=(2, 3))
         elif tuple(x.shape[-2:]) != self.flatten_size:
-            raise ValueError(f"this pose head flattens a {self.flatten_size[1]}x{self.flatten_size[0]} Res5 map (a pose_pooling "
-                             f"of flatten fixes the model config's input_size) but got {x.shape[-1]}x{x.shape[-2]}: feed images "
-                             "of the config's input_size")
+            raise ValueError(
+                f"this pose head flattens a {self.flatten_size[1]}x{self.flatten_size[0]} Res5 map (a pose_pooling "
+                f"of flatten fixes the model config's input_size) but got {x.shape[-1]}x{x.shape[-2]}: feed images "
+                "of the config's input_size"
+            )
         else:
             h = self.norm(x).flatten(1)
         h = self.dropout(F.elu(self.fc1(h)))
@@ -134,7 +143,9 @@ def bilinear_kernel(channels: int, kernel_size: int) -> torch.Tensor:
 
 def without_autocast(x: torch.Tensor) -> contextlib.AbstractContextManager:
     """A block that autocast does not reach (on ``x``'s device), for what must compute in the weights' precision."""
-    return torch.autocast(x.device.type, enabled=False) if x.device.type in ("cpu", "cuda") else contextlib.nullcontext()
+    return (
+        torch.autocast(x.device.type, enabled=False) if x.device.type in ("cpu", "cuda") else contextlib.nullcontext()
+    )
 
 
 def _in_weight_dtype(layer: nn.Module, x: torch.Tensor) -> torch.Tensor:

@@ -8,7 +8,11 @@ from typing import Any
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--config", default="lite", help="model config: 'paper', 'lite', 'lite_pose' (no semantic stream) or a YAML file (default: lite)")
+    parser.add_argument(
+        "--config",
+        default="lite",
+        help="model config: 'paper', 'lite', 'lite_pose' (no semantic stream) or a YAML file (default: lite)",
+    )
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
 
 
@@ -25,12 +29,21 @@ def model_info(config_name: str) -> dict[str, Any]:
         "input_size": list(config.input_size),
         "params_total": sum(per_stream.values()),
         "params_per_stream": per_stream,
-        "params_trained_per_stage": {stage: sum(p.numel() for p in trainable_parameters(model, stage)) for stage in STAGES
-                                     if _trains(stage, config.tasks)},
-        "switches": {k: getattr(config, k) for k in ("semantic_stream", "temporal_fusion", "semantic_fusion", "warping")},
-        "global_stream": {"downsample": config.global_downsample, "pooling": config.global_pose_pooling,
-                          "anchors": config.global_pose_anchors, "rotation_anchors": config.global_rotation_anchors,
-                          "res5_size": list(config.global_res5_size)},
+        "params_trained_per_stage": {
+            stage: sum(p.numel() for p in trainable_parameters(model, stage))
+            for stage in STAGES
+            if _trains(stage, config.tasks)
+        },
+        "switches": {
+            k: getattr(config, k) for k in ("semantic_stream", "temporal_fusion", "semantic_fusion", "warping")
+        },
+        "global_stream": {
+            "downsample": config.global_downsample,
+            "pooling": config.global_pose_pooling,
+            "anchors": config.global_pose_anchors,
+            "rotation_anchors": config.global_rotation_anchors,
+            "res5_size": list(config.global_res5_size),
+        },
         "odometry_stream": {"pooling": config.odometry_pose_pooling, "res5_size": list(config.odometry_res5_size)},
         "tasks": list(config.tasks),
         "num_classes": config.num_classes if config.semantic_stream else 0,
@@ -51,10 +64,14 @@ def _trains(stage: str, tasks: tuple[str, ...]) -> bool:
 def format_table(info: dict[str, Any]) -> str:
     w, h = info["input_size"]
     classes = f"{info['num_classes']} classes" if info["num_classes"] else "pose only (no semantic stream)"
-    lines = [f"model config {info['config']!r}: input {w}x{h} (width x height), {classes}",
-             "switches: " + ", ".join(f"{k}={'on' if v else 'off'}" for k, v in info["switches"].items()),
-             _global_stream_line(info["global_stream"]), _odometry_stream_line(info["odometry_stream"]), "",
-             f"{'stream':<12}{'parameters':>14}"]
+    lines = [
+        f"model config {info['config']!r}: input {w}x{h} (width x height), {classes}",
+        "switches: " + ", ".join(f"{k}={'on' if v else 'off'}" for k, v in info["switches"].items()),
+        _global_stream_line(info["global_stream"]),
+        _odometry_stream_line(info["odometry_stream"]),
+        "",
+        f"{'stream':<12}{'parameters':>14}",
+    ]
     lines += [f"{name:<12}{n:>14,}" for name, n in info["params_per_stream"].items()]
     lines += [f"{'total':<12}{info['params_total']:>14,}", "", f"{'stage':<12}{'trained':>14}"]
     lines += [f"{name:<12}{n:>14,}" for name, n in info["params_trained_per_stage"].items()]
@@ -69,10 +86,16 @@ def _global_stream_line(g: dict[str, Any]) -> str:
     h, w = g["res5_size"]
     res3 = "as is (the paper)" if g["downsample"] == 1 else f"pooled by {g['downsample']} (a departure from the paper)"
     head = POOLING_WORDS[g["pooling"]]
-    xyz = ("fc2 regresses the position (the paper)" if not g["anchors"] else
-           f"the position is {g['anchors']} scored anchors plus offsets (a departure from the paper)")
-    quat = ("fc3 regresses the rotation (the paper)" if not g["rotation_anchors"] else
-            f"the rotation is {g['rotation_anchors']} scored anchor rotations each turned by a residual (a departure from the paper)")
+    xyz = (
+        "fc2 regresses the position (the paper)"
+        if not g["anchors"]
+        else f"the position is {g['anchors']} scored anchors plus offsets (a departure from the paper)"
+    )
+    quat = (
+        "fc3 regresses the rotation (the paper)"
+        if not g["rotation_anchors"]
+        else f"the rotation is {g['rotation_anchors']} scored anchor rotations each turned by a residual (a departure from the paper)"
+    )
     return f"global stream: reads the trunk's Res3 map {res3}; its {w}x{h} Res5c map is {head} into fc1; {xyz}; {quat}"
 
 

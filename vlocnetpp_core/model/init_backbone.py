@@ -70,8 +70,13 @@ def backbone_copies(model: nn.Module) -> dict[str, dict[str, nn.Module]]:
     (no ``semantic`` copy in a pose-only network)."""
     sem = model.semantic
     copies = {
-        "global": {"stem": model.trunk.stem, "res2": model.trunk.res2, "res3": model.trunk.res3,
-                   "res4": model.global_stream.res4, "res5": model.global_stream.res5},
+        "global": {
+            "stem": model.trunk.stem,
+            "res2": model.trunk.res2,
+            "res3": model.trunk.res3,
+            "res4": model.global_stream.res4,
+            "res5": model.global_stream.res5,
+        },
         "odometry": {"res4": model.odometry.res4, "res5": model.odometry.res5},
     }
     if sem is not None:
@@ -94,7 +99,9 @@ def read_state_dict(path: str | Path) -> dict[str, torch.Tensor]:
 
             data = load_file(str(path))
     except Exception as err:  # safetensors / pickle / zip errors all mean "not a weights file"
-        raise DataError(path, f"cannot read a state dict (safetensors or weights-only torch file): {err}".splitlines()[0]) from None
+        raise DataError(
+            path, f"cannot read a state dict (safetensors or weights-only torch file): {err}".splitlines()[0]
+        ) from None
     for key in ("state_dict", "model"):
         if isinstance(data, dict) and isinstance(data.get(key), dict):
             data = data[key]
@@ -129,7 +136,14 @@ def _targets(key: str, parts: dict[str, nn.Module]) -> tuple[list[tuple[nn.Modul
     if name == "conv2" and getattr(block, "conv2_dilated", None) is not None:
         half = block.conv2.out_channels
         return [(block, "conv2.weight", slice(0, half)), (block, "conv2_dilated.weight", slice(half, None))], None
-    mapped = {"conv1": "conv1", "conv2": "conv2", "conv3": "conv3", "downsample.0": "shortcut", "bn1": "bn2", "bn2": "bn3"}.get(name)
+    mapped = {
+        "conv1": "conv1",
+        "conv2": "conv2",
+        "conv3": "conv3",
+        "downsample.0": "shortcut",
+        "bn1": "bn2",
+        "bn2": "bn3",
+    }.get(name)
     if mapped is None or (name.startswith("bn") and leaf not in _BN_FIELDS):
         raise KeyError(key)
     return [(block, f"{mapped}.{leaf}", None)], None

@@ -57,15 +57,39 @@ class StageSpec:
     warps_with_ground_truth: bool = False
 
 
-STAGE_SPECS: dict[str, StageSpec] = {spec.name: spec for spec in (
-    StageSpec("stl-loc", ("loc",), frozenset({"global"}), trains_trunk=True, lr=1e-3,
-              init_rules={"stl-vo": "trunk", "stl-seg": "encoder"}),
-    StageSpec("stl-vo", ("vo",), frozenset({"odometry"}), trains_trunk=True, lr=1e-3,
-              init_rules={"stl-loc": "trunk"}, init_freezes_trunk=True, mirrors=True),
-    StageSpec("stl-seg", ("seg",), frozenset({"semantic", "depth"}), trains_trunk=False, lr=1e-3,
-              crop_scale=1.15, warps_with_ground_truth=True),
-    StageSpec("mtl", ("loc", "vo", "seg"), frozenset(STREAMS), trains_trunk=True, lr=1e-4, multi_init="streams"),
-)}
+STAGE_SPECS: dict[str, StageSpec] = {
+    spec.name: spec
+    for spec in (
+        StageSpec(
+            "stl-loc",
+            ("loc",),
+            frozenset({"global"}),
+            trains_trunk=True,
+            lr=1e-3,
+            init_rules={"stl-vo": "trunk", "stl-seg": "encoder"},
+        ),
+        StageSpec(
+            "stl-vo",
+            ("vo",),
+            frozenset({"odometry"}),
+            trains_trunk=True,
+            lr=1e-3,
+            init_rules={"stl-loc": "trunk"},
+            init_freezes_trunk=True,
+            mirrors=True,
+        ),
+        StageSpec(
+            "stl-seg",
+            ("seg",),
+            frozenset({"semantic", "depth"}),
+            trains_trunk=False,
+            lr=1e-3,
+            crop_scale=1.15,
+            warps_with_ground_truth=True,
+        ),
+        StageSpec("mtl", ("loc", "vo", "seg"), frozenset(STREAMS), trains_trunk=True, lr=1e-4, multi_init="streams"),
+    )
+}
 STAGES = tuple(STAGE_SPECS)
 STAGE_TASKS: dict[str, tuple[str, ...]] = {name: spec.tasks for name, spec in STAGE_SPECS.items()}
 
@@ -109,9 +133,11 @@ def stage_tasks(stage: str, model_tasks: Iterable[str] = TASKS) -> tuple[str, ..
     have = set(model_tasks)
     tasks = tuple(t for t in stage_spec(stage).tasks if t in have)
     if not tasks:
-        raise ValueError(f"stage {stage} trains the {' and '.join(TASK_NAMES[t] for t in STAGE_TASKS[stage])} stream, which this "
-                         f"model config does not have (semantic_stream: false, a pose-only network); it trains with "
-                         f"{', '.join(s for s in STAGES if set(STAGE_TASKS[s]) & have)}")
+        raise ValueError(
+            f"stage {stage} trains the {' and '.join(TASK_NAMES[t] for t in STAGE_TASKS[stage])} stream, which this "
+            f"model config does not have (semantic_stream: false, a pose-only network); it trains with "
+            f"{', '.join(s for s in STAGES if set(STAGE_TASKS[s]) & have)}"
+        )
     return tasks
 
 

@@ -37,7 +37,9 @@ class GlobalPoseStream(nn.Module):
         self.res5 = make_stage(c[2], cfg.widths[3], c[3], cfg.depths[3], stride=2)
         self.temporal_fusion = AdaptiveWeightedFusion(c[3], c[3]) if cfg.temporal_fusion else None
         flatten = cfg.global_res5_size if cfg.global_pose_pooling == "flatten" else None
-        self.head = PoseHead(c[3], cfg.fc_width, cfg.dropout, flatten, cfg.global_pose_anchors, cfg.global_rotation_anchors)
+        self.head = PoseHead(
+            c[3], cfg.fc_width, cfg.dropout, flatten, cfg.global_pose_anchors, cfg.global_rotation_anchors
+        )
 
 
 class OdometryStream(nn.Module):
@@ -68,8 +70,12 @@ class SemanticStream(nn.Module):
         self.stem = Stem(cfg.stem_width)
         self.res2 = make_stage(cfg.stem_width, cfg.widths[0], c[0], cfg.depths[0], stride=1)
         self.res3 = make_stage(c[0], cfg.widths[1], c[1], cfg.depths[1], stride=2)
-        self.res4 = make_stage(c[1], cfg.widths[2], c[2], cfg.depths[2], stride=2, multiscale=(None,) + (d4,) * (cfg.depths[2] - 1))
-        self.res5 = make_stage(c[2], cfg.widths[3], c[3], cfg.depths[3], stride=1, dilation=2, multiscale=cfg.res5_dilations())
+        self.res4 = make_stage(
+            c[1], cfg.widths[2], c[2], cfg.depths[2], stride=2, multiscale=(None,) + (d4,) * (cfg.depths[2] - 1)
+        )
+        self.res5 = make_stage(
+            c[2], cfg.widths[3], c[3], cfg.depths[3], stride=1, dilation=2, multiscale=cfg.res5_dilations()
+        )
         self.warp_fusion_res4f = AdaptiveWeightedFusion(c[2], c[2]) if cfg.warping else None
         self.warp_fusion_res5c = AdaptiveWeightedFusion(c[3], c[3]) if cfg.warping else None
         self.decoder = SegmentationDecoder(c[3], c[1], cfg.num_classes)

@@ -89,7 +89,9 @@ class StreamState:
 
     def detach(self) -> StreamState:
         """A copy cut from the autograd graph (for truncated back-propagation through time)."""
-        return StreamState(**{f.name: None if getattr(self, f.name) is None else getattr(self, f.name).detach() for f in fields(self)})
+        return StreamState(
+            **{f.name: None if getattr(self, f.name) is None else getattr(self, f.name).detach() for f in fields(self)}
+        )
 
 
 class VLocNetPP(nn.Module):
@@ -133,8 +135,12 @@ class VLocNetPP(nn.Module):
         if self.config.global_rotation_anchors:
             if quats is None:
                 raise ValueError("a head with global_rotation_anchors needs the training quaternions")
-            anchors = rotation_anchors(np.asarray(quats, dtype=np.float64).reshape(-1, 4), self.config.global_rotation_anchors, seed)
-            head.set_rotation_anchors(torch.as_tensor(anchors, dtype=head.anchor_quat.dtype, device=head.anchor_quat.device))
+            anchors = rotation_anchors(
+                np.asarray(quats, dtype=np.float64).reshape(-1, 4), self.config.global_rotation_anchors, seed
+            )
+            head.set_rotation_anchors(
+                torch.as_tensor(anchors, dtype=head.anchor_quat.dtype, device=head.anchor_quat.device)
+            )
         if self.config.global_pose_anchors:
             anchors = kmeans_anchors(positions, self.config.global_pose_anchors, seed)
             head.set_anchors(torch.as_tensor(anchors, dtype=head.anchor_xyz.dtype, device=head.anchor_xyz.device))
@@ -147,7 +153,9 @@ class VLocNetPP(nn.Module):
     def memory_format(self) -> torch.memory_format:
         """``torch.channels_last`` or ``torch.contiguous_format``: the layout of the weights, which the input follows."""
         weight = self.trunk.stem.conv.weight
-        return torch.channels_last if weight.is_contiguous(memory_format=torch.channels_last) else torch.contiguous_format
+        return (
+            torch.channels_last if weight.is_contiguous(memory_format=torch.channels_last) else torch.contiguous_format
+        )
 
     # ------------------------------------------------------------------ streaming
 
@@ -217,8 +225,16 @@ class VLocNetPP(nn.Module):
         _check_state(prev_res4, odo_res4, "odo_res4")
         out.rel_xyz, out.rel_quat, out.taps["odo_res5"] = self.odometry(prev_res4, odo_res4)
 
-    def _semantic_step(self, x: torch.Tensor, prev: StreamState, out: StepOutput, new: StreamState, K: torch.Tensor | None,
-                       depth: torch.Tensor | None, warp_rel_pose: torch.Tensor | None) -> torch.Tensor:
+    def _semantic_step(
+        self,
+        x: torch.Tensor,
+        prev: StreamState,
+        out: StepOutput,
+        new: StreamState,
+        K: torch.Tensor | None,
+        depth: torch.Tensor | None,
+        warp_rel_pose: torch.Tensor | None,
+    ) -> torch.Tensor:
         """Encoder, depth head, Res4f / Res5c warp fusions (when ``warp_rel_pose`` is given), decoder.
 
         Returns the (fused) Res5c features that the global stream fuses at Res4c.
@@ -242,8 +258,9 @@ class VLocNetPP(nn.Module):
         out.seg_logits = sem.decoder(fused5c, sem_res3)
         return fused5c
 
-    def _global_step(self, res3: torch.Tensor, sem_res5c: torch.Tensor | None, prev: StreamState, out: StepOutput,
-                     new: StreamState) -> None:
+    def _global_step(
+        self, res3: torch.Tensor, sem_res5c: torch.Tensor | None, prev: StreamState, out: StepOutput, new: StreamState
+    ) -> None:
         """Res4 with the semantic AWF after block ``res4_fusion_block``, Res5a with the temporal AWF, Res5, pose."""
         g, taps, k = self.global_stream, out.taps, self.config.res4_fusion_block
         h = self.global_pool(res3)
@@ -276,8 +293,15 @@ class VLocNetPP(nn.Module):
         f = self.config.global_downsample
         return x if f == 1 else F.avg_pool2d(x, f, ceil_mode=True)
 
-    def _warp_fuse(self, fusion: nn.Module, current: torch.Tensor, previous: torch.Tensor | None, warper: _Warper | None,
-                   name: str, taps: dict[str, torch.Tensor]) -> torch.Tensor:
+    def _warp_fuse(
+        self,
+        fusion: nn.Module,
+        current: torch.Tensor,
+        previous: torch.Tensor | None,
+        warper: _Warper | None,
+        name: str,
+        taps: dict[str, torch.Tensor],
+    ) -> torch.Tensor:
         """AWF of ``current`` with the previous frame's features warped into this view (own features on a first frame)."""
         if previous is None:
             warped = current
@@ -322,8 +346,14 @@ class VLocNetPP(nn.Module):
             outputs.append(out)
         return outputs
 
-    def forward(self, images: torch.Tensor, K: torch.Tensor | None = None, depth: torch.Tensor | None = None,
-                warp_rel_pose: torch.Tensor | None = None, tasks: Iterable[str] | None = None) -> list[StepOutput]:
+    def forward(
+        self,
+        images: torch.Tensor,
+        K: torch.Tensor | None = None,
+        depth: torch.Tensor | None = None,
+        warp_rel_pose: torch.Tensor | None = None,
+        tasks: Iterable[str] | None = None,
+    ) -> list[StepOutput]:
         """Same as :meth:`forward_clip` (so wrappers such as DistributedDataParallel work)."""
         return self.forward_clip(images, K, depth, warp_rel_pose, tasks)
 
@@ -332,14 +362,18 @@ class VLocNetPP(nn.Module):
             raise ValueError(f"image must be (B, 3, H, W) RGB, got {tuple(image.shape)}")
         h, w = image.shape[-2:]
         if h % 16 or w % 16:
-            raise ValueError(f"image height and width must be multiples of 16 (semantic stream at output stride 16), got {w}x{h}")
+            raise ValueError(
+                f"image height and width must be multiples of 16 (semantic stream at output stride 16), got {w}x{h}"
+            )
 
 
 class _Warper:
     """Warps previous-frame features into the current view; one float32 input-resolution grid, pooled per feature size."""
 
     def __init__(self, depth: torch.Tensor, T_rel: torch.Tensor, K: torch.Tensor):
-        dtype = torch.promote_types(depth.dtype, torch.float32)  # pixel coordinates in float32 (or 64), also under autocast
+        dtype = torch.promote_types(
+            depth.dtype, torch.float32
+        )  # pixel coordinates in float32 (or 64), also under autocast
         with without_autocast(depth):
             self.grid, self.valid = warp_grid(depth.to(dtype), T_rel.to(dtype), K.to(dtype))
         self.pooled: dict[tuple[int, int], tuple[torch.Tensor, torch.Tensor]] = {}
@@ -357,12 +391,16 @@ def _check_tasks(tasks: Iterable[str] | None, available: tuple[str, ...]) -> fro
     if unknown or not run:
         raise ValueError(f"tasks must be a non-empty subset of {TASKS}, got {sorted(run)}")
     if run - set(available):
-        raise ValueError(f"this network has no semantic stream (model config semantic_stream: false), so it cannot run "
-                         f"{sorted(run - set(available))}; its tasks are {', '.join(available)}")
+        raise ValueError(
+            f"this network has no semantic stream (model config semantic_stream: false), so it cannot run "
+            f"{sorted(run - set(available))}; its tasks are {', '.join(available)}"
+        )
     return run
 
 
 def _check_state(previous: torch.Tensor, current: torch.Tensor, name: str) -> None:
     if previous.shape != current.shape:
-        raise ValueError(f"state {name} has shape {tuple(previous.shape)} but this frame gives {tuple(current.shape)}: "
-                         "the input size or batch changed, start again with state=None")
+        raise ValueError(
+            f"state {name} has shape {tuple(previous.shape)} but this frame gives {tuple(current.shape)}: "
+            "the input size or batch changed, start again with state=None"
+        )

@@ -212,14 +212,22 @@ class Campus(Buildings, StreetFurniture, GroundColour):
             bottom = float(rng.uniform(2.4, 3.0))
             fi = (int(rng.integers(4)) if shade is None else shade) * 2 + (1 if big else 0)
             fa, fb, strip = self._foliage[fi]
-            self._b.cylinder(x, y, float(rng.uniform(0.14, 0.22)), 0.0, bottom + b * 0.6, VEGETATION, self._bark, self._cap(0x5B4636))
+            self._b.cylinder(
+                x, y, float(rng.uniform(0.14, 0.22)), 0.0, bottom + b * 0.6, VEGETATION, self._bark, self._cap(0x5B4636)
+            )
             self._b.ellipsoid(x, y, bottom + b, a, b, VEGETATION, strip)
             self._occupy(x, y, 0.0, 0.8, 0.8)
             return True
 
         # alleys along the ring and the cross street: same species, same spacing
         X0, X1, Y0, Y1, Ym = self.X0, self.X1, self.Y0, self.Y1, self.Ym
-        sides = [((X0, Y0), (X1, Y0)), ((X1, Y0), (X1, Y1)), ((X1, Y1), (X0, Y1)), ((X0, Y1), (X0, Y0)), ((X0, Ym), (X1, Ym))]
+        sides = [
+            ((X0, Y0), (X1, Y0)),
+            ((X1, Y0), (X1, Y1)),
+            ((X1, Y1), (X0, Y1)),
+            ((X0, Y1), (X0, Y0)),
+            ((X0, Ym), (X1, Ym)),
+        ]
         for (ax, ay), (bx, by) in sides:
             d = np.array([bx - ax, by - ay])
             n_len = float(np.linalg.norm(d))
@@ -250,12 +258,26 @@ class Campus(Buildings, StreetFurniture, GroundColour):
                     c = np.array([ax, ay]) + d * (s + seg / 2) + nrm * 6.6
                     yaw = math.atan2(d[1], d[0])
                     if self._free(float(c[0]), float(c[1]), 0.1, margin=0.3) and self._free_along(c, d, seg):
-                        self._b.box(float(c[0]), float(c[1]), yaw, seg, 0.9, 0.0, float(rng.uniform(0.9, 1.3)), VEGETATION, hedge_strip, hedge_cap)
+                        self._b.box(
+                            float(c[0]),
+                            float(c[1]),
+                            yaw,
+                            seg,
+                            0.9,
+                            0.0,
+                            float(rng.uniform(0.9, 1.3)),
+                            VEGETATION,
+                            hedge_strip,
+                            hedge_cap,
+                        )
                         self._occupy(float(c[0]), float(c[1]), yaw, seg, 0.9)
                 s += seg + float(rng.uniform(3, 9))
 
     def _free_along(self, c: np.ndarray, d: np.ndarray, length: float) -> bool:
-        return all(self._free(float(p[0]), float(p[1]), 0.45, margin=0.2) for p in (c + d * f * length / 2 for f in (-1, -0.5, 0.5, 1)))
+        return all(
+            self._free(float(p[0]), float(p[1]), 0.45, margin=0.2)
+            for p in (c + d * f * length / 2 for f in (-1, -0.5, 0.5, 1))
+        )
 
     # ================================================================= moving things
     def _make_dynamic_appearances(self, rng: np.random.Generator) -> None:
@@ -263,7 +285,12 @@ class Campus(Buildings, StreetFurniture, GroundColour):
         self.car_strips = [self._atlas.add(tx.car_strip(rng, L, W, H, p)) for p in CAR_PAINTS]
         self.car_caps = [self._cap(p) for p in CAR_PAINTS]
         pl, pw, ph = PERSON_SIZE
-        self.person_strips = [self._atlas.add(tx.person_strip(rng, pl, pw, ph, s, int(rng.choice([0x1B2631, 0x34495E, 0x5D4037, 0x283747])))) for s in SHIRTS]
+        self.person_strips = [
+            self._atlas.add(
+                tx.person_strip(rng, pl, pw, ph, s, int(rng.choice([0x1B2631, 0x34495E, 0x5D4037, 0x283747])))
+            )
+            for s in SHIRTS
+        ]
         self.person_cap = self._cap(0x3A2A1E)
 
     def dynamic_prims(self, objects) -> Prims:
@@ -272,10 +299,32 @@ class Campus(Buildings, StreetFurniture, GroundColour):
         for o in objects:
             if o.kind == "car":
                 i = o.appearance % len(self.car_strips)
-                b.box(o.x, o.y, o.yaw, CAR_SIZE[0], CAR_SIZE[1], 0.0, CAR_SIZE[2], DYNAMIC, self.car_strips[i], self.car_caps[i])
+                b.box(
+                    o.x,
+                    o.y,
+                    o.yaw,
+                    CAR_SIZE[0],
+                    CAR_SIZE[1],
+                    0.0,
+                    CAR_SIZE[2],
+                    DYNAMIC,
+                    self.car_strips[i],
+                    self.car_caps[i],
+                )
             elif o.kind == "person":
                 i = o.appearance % len(self.person_strips)
-                b.box(o.x, o.y, o.yaw, PERSON_SIZE[0], PERSON_SIZE[1], 0.0, PERSON_SIZE[2], DYNAMIC, self.person_strips[i], self.person_cap)
+                b.box(
+                    o.x,
+                    o.y,
+                    o.yaw,
+                    PERSON_SIZE[0],
+                    PERSON_SIZE[1],
+                    0.0,
+                    PERSON_SIZE[2],
+                    DYNAMIC,
+                    self.person_strips[i],
+                    self.person_cap,
+                )
             else:
                 raise ValueError(f"unknown dynamic object kind {o.kind!r} (car, person)")
         return b.build()
@@ -300,6 +349,7 @@ class Campus(Buildings, StreetFurniture, GroundColour):
     # ================================================================= lighting
     def sky_panorama(self, lighting: Lighting) -> np.ndarray:
         """Sky colour ``(256, 2048, 3)`` uint8 RGB over elevation (rows, 0 to 90 deg) and azimuth (columns, 0 to 360 deg)."""
+
         def make():
             rows, cols = self.clouds.shape
             el = ((np.arange(rows) + 0.5) * (math.pi / 2 / rows)).astype(np.float32)[:, None]

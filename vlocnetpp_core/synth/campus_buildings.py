@@ -11,13 +11,33 @@ from vlocnetpp_core.synth import textures as tx
 from vlocnetpp_core.synth.layout import BUILDING, DEPTH_M, OTHER, POLE, WIDTH_M
 
 STYLES = {
-    "dorm": tx.FacadeStyle(wall=0xC9B99A, window=0x2E3A44, frame=0xF2EFE6, floor_height=3.0, window_width=1.2, window_height=1.4, pitch=2.7),
-    "brick": tx.FacadeStyle(wall=0x94472F, frame=0xE8E4DA, floor_height=3.6, window_width=1.5, window_height=1.9, pitch=3.3, band=0xB8A58C),
-    "concrete": tx.FacadeStyle(wall=0xA6A6A0, frame=0x5A5F63, floor_height=3.5, window_height=1.3, pitch=3.6, ribbon=True, window_refl=0.5),
-    "white": tx.FacadeStyle(wall=0xE4E2DA, frame=0x8A8F94, floor_height=3.3, window_height=1.5, pitch=3.0, ribbon=True, band=0x8A8F94),
-    "dark": tx.FacadeStyle(wall=0x4B4F54, frame=0xC9CCCF, floor_height=3.4, window_width=1.8, pitch=3.2, ground_floor="shop", window_refl=0.45),
-    "yellow": tx.FacadeStyle(wall=0xD6B14E, frame=0xFFFFFF, floor_height=3.2, window_width=1.3, window_height=1.6, pitch=2.9),
-    "terracotta": tx.FacadeStyle(wall=0xB9603A, frame=0xF0E6D8, floor_height=3.2, window_width=1.0, window_height=1.8, pitch=2.2, band=0xE8D8C0),
+    "dorm": tx.FacadeStyle(
+        wall=0xC9B99A, window=0x2E3A44, frame=0xF2EFE6, floor_height=3.0, window_width=1.2, window_height=1.4, pitch=2.7
+    ),
+    "brick": tx.FacadeStyle(
+        wall=0x94472F, frame=0xE8E4DA, floor_height=3.6, window_width=1.5, window_height=1.9, pitch=3.3, band=0xB8A58C
+    ),
+    "concrete": tx.FacadeStyle(
+        wall=0xA6A6A0, frame=0x5A5F63, floor_height=3.5, window_height=1.3, pitch=3.6, ribbon=True, window_refl=0.5
+    ),
+    "white": tx.FacadeStyle(
+        wall=0xE4E2DA, frame=0x8A8F94, floor_height=3.3, window_height=1.5, pitch=3.0, ribbon=True, band=0x8A8F94
+    ),
+    "dark": tx.FacadeStyle(
+        wall=0x4B4F54,
+        frame=0xC9CCCF,
+        floor_height=3.4,
+        window_width=1.8,
+        pitch=3.2,
+        ground_floor="shop",
+        window_refl=0.45,
+    ),
+    "yellow": tx.FacadeStyle(
+        wall=0xD6B14E, frame=0xFFFFFF, floor_height=3.2, window_width=1.3, window_height=1.6, pitch=2.9
+    ),
+    "terracotta": tx.FacadeStyle(
+        wall=0xB9603A, frame=0xF0E6D8, floor_height=3.2, window_width=1.0, window_height=1.8, pitch=2.2, band=0xE8D8C0
+    ),
     "glass": tx.FacadeStyle(wall=0x6F7B80, window=0x35505E, frame=0xA8B0B4, floor_height=3.8, pitch=2.4, curtain=True),
 }
 
@@ -37,7 +57,9 @@ class Buildings:
         self.buildings.append(np.array([ctr - ex - ey, ctr + ex - ey, ctr + ex + ey, ctr - ex + ey]))
         self._occupy(x, y, yaw, length + 1.0, width + 1.0)
 
-    def _row_of_buildings(self, rng, axis: str, lo: float, hi: float, c0: float, c1: float, styles: list[str], heights, skip=()) -> None:
+    def _row_of_buildings(
+        self, rng, axis: str, lo: float, hi: float, c0: float, c1: float, styles: list[str], heights, skip=()
+    ) -> None:
         """Buildings along ``axis`` ('x' or 'y') between ``lo`` and ``hi``, across-axis extent ``[c0, c1]``."""
         s = lo + rng.uniform(0, 2)
         k = 0
@@ -70,15 +92,36 @@ class Buildings:
         # west: a row of identical dormitories (perceptual aliasing)
         self._row_of_buildings(rng, "y", 3, DEPTH_M - 3, 3, X0 - 9, ["dorm"], (9, 12))
         pk = self.parking_box
-        self._row_of_buildings(rng, "y", 3, DEPTH_M - 3, X1 + 9, WIDTH_M - 3, [others[0], others[1]], (8, 16),
-                               skip=[(pk[1] - 2, pk[3] + 2), (self.Ye - 9, self.Ye + 9)])
-        self._row_of_buildings(rng, "x", X0 - 5, X1 + 5, 3, Y0 - 9, [others[2], others[3]], (7, 14), skip=[(self.Xs - 10, self.Xs + 10)])
+        self._row_of_buildings(
+            rng,
+            "y",
+            3,
+            DEPTH_M - 3,
+            X1 + 9,
+            WIDTH_M - 3,
+            [others[0], others[1]],
+            (8, 16),
+            skip=[(pk[1] - 2, pk[3] + 2), (self.Ye - 9, self.Ye + 9)],
+        )
+        self._row_of_buildings(
+            rng, "x", X0 - 5, X1 + 5, 3, Y0 - 9, [others[2], others[3]], (7, 14), skip=[(self.Xs - 10, self.Xs + 10)]
+        )
         self._row_of_buildings(rng, "x", X0 - 5, X1 + 5, Y1 + 9, DEPTH_M - 3, [others[4], others[0]], (8, 15))
         # south block: the hall next to the plaza, with a mural
         px1 = self.plaza[2]
         hx0, hx1 = px1 + 2.5, X1 - 9.5
         hy0, hy1 = Y0 + 9.5, Ym - 9.5
-        self._building(rng, (hx0 + hx1) / 2, (hy0 + hy1) / 2, 0.0, hx1 - hx0, hy1 - hy0, float(rng.uniform(11, 14)), "concrete", mural=3)
+        self._building(
+            rng,
+            (hx0 + hx1) / 2,
+            (hy0 + hy1) / 2,
+            0.0,
+            hx1 - hx0,
+            hy1 - hy0,
+            float(rng.uniform(11, 14)),
+            "concrete",
+            mural=3,
+        )
         self.landmarks.append(("hall", (hx0 + hx1) / 2, (hy0 + hy1) / 2))
         # north block: a tower and a glass pavilion
         tx_ = float(rng.uniform(X0 + 15, X0 + 20))
@@ -87,7 +130,9 @@ class Buildings:
         self.landmarks.append(("tower", tx_, ty_))
         gx = float(rng.uniform(X1 - 18, X1 - 15))
         gy = float(rng.uniform(Ym + 13, Y1 - 13))
-        self._building(rng, gx, gy, math.radians(float(rng.uniform(-12, 12))), 13.0, 8.5, float(rng.uniform(6.5, 8.5)), "glass")
+        self._building(
+            rng, gx, gy, math.radians(float(rng.uniform(-12, 12))), 13.0, 8.5, float(rng.uniform(6.5, 8.5)), "glass"
+        )
         self.landmarks.append(("glass pavilion", gx, gy))
 
     # ================================================================= unique landmarks
@@ -125,7 +170,10 @@ class Buildings:
         # billboard near the east entrance and a bus shelter near the south entrance
         bx_, by_ = X1 + 11.0, self.Ye + 7.4
         if self._free_along(np.array([bx_, by_]), np.array([1.0, 0.0]), 5.2):
-            colors = [int(c) for c in rng.choice([0x1ABC9C, 0xE67E22, 0x9B59B6, 0x2C3E50, 0xF1C40F, 0xE74C3C], 4, replace=False)]
+            colors = [
+                int(c)
+                for c in rng.choice([0x1ABC9C, 0xE67E22, 0x9B59B6, 0x2C3E50, 0xF1C40F, 0xE74C3C], 4, replace=False)
+            ]
             board = self._atlas.add(tx.panel_strip(rng, 5.0, 0.15, 2.5, colors))
             b.box(bx_, by_, 0.0, 5.0, 0.15, 2.4, 4.9, OTHER, board, self._cap(0x2C3E50))
             for sgn in (1, -1):

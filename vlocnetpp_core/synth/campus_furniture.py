@@ -26,7 +26,13 @@ class StreetFurniture:
             "grey": self._cap(0x4A4F55),
             "head": self._atlas.add(tx.panel_strip(rng, 0.8, 0.3, 0.2, [0x3A3F45])),
         }
-        sides = [((X0, Y0), (X1, Y0)), ((X1, Y0), (X1, Y1)), ((X1, Y1), (X0, Y1)), ((X0, Y1), (X0, Y0)), ((X0, Ym), (X1, Ym))]
+        sides = [
+            ((X0, Y0), (X1, Y0)),
+            ((X1, Y0), (X1, Y1)),
+            ((X1, Y1), (X0, Y1)),
+            ((X0, Y1), (X0, Y0)),
+            ((X0, Ym), (X1, Ym)),
+        ]
         self._place_lamps(sides, strips)
         self._place_signs(rng, strips)
         self._place_benches(rng, sides)
@@ -48,23 +54,56 @@ class StreetFurniture:
                     continue
                 b.cylinder(float(p[0]), float(p[1]), 0.09, 0.0, 5.6, POLE, strips["pole"], strips["grey"])
                 h = p - nrm * 0.45 * side
-                b.box(float(h[0]), float(h[1]), math.atan2(nrm[1], nrm[0]), 0.8, 0.3, 5.45, 5.65, POLE, strips["head"], strips["grey"])
+                b.box(
+                    float(h[0]),
+                    float(h[1]),
+                    math.atan2(nrm[1], nrm[0]),
+                    0.8,
+                    0.3,
+                    5.45,
+                    5.65,
+                    POLE,
+                    strips["head"],
+                    strips["grey"],
+                )
                 self._occupy(float(p[0]), float(p[1]), 0.0, 0.5, 0.5)
 
     def _place_signs(self, rng: np.random.Generator, strips: dict) -> None:
         """Traffic signs (pole + panel) at the junctions and entrances."""
         X0, X1, Y0, Y1, Ym = self.X0, self.X1, self.Y0, self.Y1, self.Ym
-        sign_colors = [[0x1F5FAF, 0xFFFFFF], [0xC0392B, 0xFFFFFF, 0xC0392B], [0xF1C40F, 0x1C1C1C], [0xFFFFFF, 0x1F5FAF, 0xFFFFFF]]
+        sign_colors = [
+            [0x1F5FAF, 0xFFFFFF],
+            [0xC0392B, 0xFFFFFF, 0xC0392B],
+            [0xF1C40F, 0x1C1C1C],
+            [0xFFFFFF, 0x1F5FAF, 0xFFFFFF],
+        ]
         sign_strips = [self._atlas.add(tx.panel_strip(rng, 0.75, 0.06, 0.75, c)) for c in sign_colors]
-        spots = [(X0, Ym, 1, 1), (X1, Ym, -1, -1), (self.Xs, Y0, 1, -1), (X1, self.Ye, 1, -1), (X0, Y0, 1, 1), (X1, Y1, -1, -1)]
+        spots = [
+            (X0, Ym, 1, 1),
+            (X1, Ym, -1, -1),
+            (self.Xs, Y0, 1, -1),
+            (X1, self.Ye, 1, -1),
+            (X0, Y0, 1, 1),
+            (X1, Y1, -1, -1),
+        ]
         for k, (x, y, sx, sy) in enumerate(spots):
             px, py = x + sx * 6.6, y + sy * 6.6
             if not self._free(px, py, 0.1, margin=0.3):
                 continue
             self._b.cylinder(px, py, 0.045, 0.0, 2.75, POLE, strips["thin"], strips["grey"])
             yaw = float(rng.uniform(0, math.pi))
-            self._b.box(px + 0.08 * math.cos(yaw + math.pi / 2), py + 0.08 * math.sin(yaw + math.pi / 2), yaw, 0.75, 0.06, 1.95, 2.7, OTHER,
-                        sign_strips[k % len(sign_strips)], self._cap(0x9A9A9A))
+            self._b.box(
+                px + 0.08 * math.cos(yaw + math.pi / 2),
+                py + 0.08 * math.sin(yaw + math.pi / 2),
+                yaw,
+                0.75,
+                0.06,
+                1.95,
+                2.7,
+                OTHER,
+                sign_strips[k % len(sign_strips)],
+                self._cap(0x9A9A9A),
+            )
             self._occupy(px, py, 0.0, 1.0, 1.0)
 
     def _place_benches(self, rng: np.random.Generator, sides: list) -> None:
@@ -101,7 +140,19 @@ class StreetFurniture:
             if L < 1.0:
                 return
             strip = self._atlas.add(tx.fence_strip(rng, L, 0.06, h, color, spacing, mesh))
-            self._b.box((x0 + x1) / 2, (y0 + y1) / 2, math.atan2(y1 - y0, x1 - x0), L, 0.06, 0.0, h, POLE, strip, self._cap(color), cutout=True)
+            self._b.box(
+                (x0 + x1) / 2,
+                (y0 + y1) / 2,
+                math.atan2(y1 - y0, x1 - x0),
+                L,
+                0.06,
+                0.0,
+                h,
+                POLE,
+                strip,
+                self._cap(color),
+                cutout=True,
+            )
 
         e = 0.6
         fence(e, e, gaps["s"][0], e)
@@ -136,6 +187,18 @@ class StreetFurniture:
             for sgn in (1, -1):
                 p = c + nrm * sgn * (np.linalg.norm(fp[3] - fp[0]) / 2 + 1.8)
                 if self._free(float(p[0]), float(p[1]), 2.1, margin=0.1):
-                    b.box(float(p[0]), float(p[1]), yaw, 4.0, 0.08, 0.0, 0.85, OTHER, rack_strip, self._cap(0x9AA0A6), cutout=True)
+                    b.box(
+                        float(p[0]),
+                        float(p[1]),
+                        yaw,
+                        4.0,
+                        0.08,
+                        0.0,
+                        0.85,
+                        OTHER,
+                        rack_strip,
+                        self._cap(0x9AA0A6),
+                        cutout=True,
+                    )
                     self._occupy(float(p[0]), float(p[1]), yaw, 4.2, 0.4)
                     break

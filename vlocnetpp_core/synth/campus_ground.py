@@ -37,8 +37,15 @@ class GroundColour:
         manholes = [(float(rng.uniform(X0, X1)), Y0 + rng.uniform(-1.5, 1.5)) for _ in range(3)]
         manholes += [(X0 + rng.uniform(-1.5, 1.5), float(rng.uniform(Y0, Y1))) for _ in range(3)]
         manholes += [(float(rng.uniform(X0, X1)), Ym + rng.uniform(-1.5, 1.5)) for _ in range(3)]
-        patches = [(float(rng.uniform(X0 - 2, X1 + 2)), float(rng.uniform(Y0 - 2, Y1 + 2)), float(rng.uniform(1, 4)), float(rng.uniform(1, 3)))
-                   for _ in range(25)]
+        patches = [
+            (
+                float(rng.uniform(X0 - 2, X1 + 2)),
+                float(rng.uniform(Y0 - 2, Y1 + 2)),
+                float(rng.uniform(1, 4)),
+                float(rng.uniform(1, 3)),
+            )
+            for _ in range(25)
+        ]
 
         def patterns(albedo: np.ndarray) -> None:
             L = g.labels
@@ -78,7 +85,14 @@ class GroundColour:
             g.polyline(canvas, [(X0 + 2.75, Ym - 2.75), (X1 - 2.75, Ym - 2.75)], 0.12, white)
             g.polyline(canvas, [(X0 + 2.75, Ym + 2.75), (X1 - 2.75, Ym + 2.75)], 0.12, white)
             # zebra crossings next to the junctions and entrances
-            for (x0, y0, ax) in ((X0 + 9, Ym, "x"), (X1 - 9, Ym, "x"), (X0, Ym + 9, "y"), (X1, Ym - 9, "y"), (self.Xs + 8, Y0, "x"), (X1, self.Ye + 8, "y")):
+            for x0, y0, ax in (
+                (X0 + 9, Ym, "x"),
+                (X1 - 9, Ym, "x"),
+                (X0, Ym + 9, "y"),
+                (X1, Ym - 9, "y"),
+                (self.Xs + 8, Y0, "x"),
+                (X1, self.Ye + 8, "y"),
+            ):
                 for k in np.arange(-2.5, 2.6, 1.0):
                     if ax == "x":
                         g.rect(canvas, x0, y0 + k, 0.0, 3.0, 0.5, white)
@@ -95,7 +109,9 @@ class GroundColour:
             for x0, sgn in ((X0 + 16, 1), (X1 - 16, -1)):
                 yy = Ym - 1.5 * sgn
                 g.rect(canvas, x0, yy, 0.0, 3.0, 0.18, white)
-                g.polygon(canvas, [(x0 + 1.5 * sgn, yy - 0.45), (x0 + 2.3 * sgn, yy), (x0 + 1.5 * sgn, yy + 0.45)], white)
+                g.polygon(
+                    canvas, [(x0 + 1.5 * sgn, yy - 0.45), (x0 + 2.3 * sgn, yy), (x0 + 1.5 * sgn, yy + 0.45)], white
+                )
 
         g.paint_albedo(rng, base, patterns)
         g.detail = 0.6 * tx.tileable_noise(rng, 256, 1.2) + 0.8 * tx.tileable_noise(rng, 256, 4.0)
@@ -131,7 +147,18 @@ def _ground_light(campus: Campus, lighting: Lighting) -> np.ndarray:
             along = math.hypot(P.a[i], bv * k)
             ang = math.degrees(math.atan2(away[1], away[0]))
             cc = to_px(c[None])[0]
-            cv2.ellipse(shadow, (int(cc[0]), int(cc[1])), (int(along / (2 * RES) * 16), int(P.a[i] / (2 * RES) * 16)), ang, 0, 360, 1, -1, cv2.LINE_8, 4)
+            cv2.ellipse(
+                shadow,
+                (int(cc[0]), int(cc[1])),
+                (int(along / (2 * RES) * 16), int(P.a[i] / (2 * RES) * 16)),
+                ang,
+                0,
+                360,
+                1,
+                -1,
+                cv2.LINE_8,
+                4,
+            )
             continue
         if kind == BOX:
             ca, sa = P.cos[i], P.sin[i]

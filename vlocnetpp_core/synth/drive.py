@@ -137,8 +137,16 @@ def choose_pattern(rng: np.random.Generator, split: str, loop: int, combo_offset
     )
 
 
-def plan_visit(campus: Campus, seed: int, split: str, loop: int, frames: int, frame_interval: float | None = None,
-               lane_offset: float | None = None, lane_wander: float = 0.0) -> Visit:
+def plan_visit(
+    campus: Campus,
+    seed: int,
+    split: str,
+    loop: int,
+    frames: int,
+    frame_interval: float | None = None,
+    lane_offset: float | None = None,
+    lane_wander: float = 0.0,
+) -> Visit:
     """The ``loop``-th visit of ``split`` for ``seed``: ``frames`` camera poses plus lighting and movers.
 
     ``lane_offset`` (metres right of the circuit's centreline) replaces the lane the visit drew, e.g.
@@ -182,7 +190,9 @@ def plan_visit(campus: Campus, seed: int, split: str, loop: int, frames: int, fr
     weave = pattern.weave_amplitude * _smooth_noise_1d(rng, s, (pattern.weave_length, pattern.weave_length * 2.3))
     if lane_wander > 0:  # its own random stream: the rest of the visit stays as without wander
         pattern = replace(pattern, lane_wander=float(lane_wander))
-        drift = lane_wander * _smooth_noise_1d(np.random.default_rng([base_seed, SPLIT_CODES[split], int(loop), 1]), s, WANDER_WAVELENGTHS_M)
+        drift = lane_wander * _smooth_noise_1d(
+            np.random.default_rng([base_seed, SPLIT_CODES[split], int(loop), 1]), s, WANDER_WAVELENGTHS_M
+        )
         weave = np.clip(lateral + weave + drift, -MAX_LANE_OFFSET_M, MAX_LANE_OFFSET_M) - lateral
     p, tang = path.at(s_start + s)
     right = np.stack([tang[:, 1], -tang[:, 0]], 1)
@@ -191,7 +201,11 @@ def plan_visit(campus: Campus, seed: int, split: str, loop: int, frames: int, fr
     travel = np.unwrap(np.arctan2(d[:, 1], d[:, 0]))
     x_f = np.interp(s_f, s, xy[:, 0])
     y_f = np.interp(s_f, s, xy[:, 1])
-    yaw = np.interp(s_f, s, travel) + math.radians(pattern.heading_bias_deg) + math.radians(1.5) * _smooth_noise_1d(rng, times, (7.0, 3.1))
+    yaw = (
+        np.interp(s_f, s, travel)
+        + math.radians(pattern.heading_bias_deg)
+        + math.radians(1.5) * _smooth_noise_1d(rng, times, (7.0, 3.1))
+    )
     pitch = math.radians(3.0) * _smooth_noise_1d(rng, times, (9.0, 4.0, 1.7))
     roll = math.radians(2.6) * _smooth_noise_1d(rng, times, (11.0, 3.3, 1.3))
     height = CAMERA_HEIGHT + 0.02 * _smooth_noise_1d(rng, times, (2.0, 0.7))
@@ -232,21 +246,57 @@ def _movers(campus: Campus, rng: np.random.Generator, visit: Visit) -> list[Move
         route = campus.car_routes[int(rng.integers(len(campus.car_routes)))]
         if rng.random() < 0.5:
             route = route.reversed()
-        candidates.append(Mover("car", int(rng.integers(len(CAR_PAINTS))), route.offset(1.5), float(rng.uniform(0, route.length)),
-                                float(rng.uniform(3.0, 6.5))))
+        candidates.append(
+            Mover(
+                "car",
+                int(rng.integers(len(CAR_PAINTS))),
+                route.offset(1.5),
+                float(rng.uniform(0, route.length)),
+                float(rng.uniform(3.0, 6.5)),
+            )
+        )
     for _ in range(int(rng.integers(9, 15))):
         route = campus.walk_routes[int(rng.integers(len(campus.walk_routes)))]
         if rng.random() < 0.5:
             route = route.reversed()
-        candidates.append(Mover("person", int(rng.integers(len(SHIRTS))), route, float(rng.uniform(0, route.length)), float(rng.uniform(0.8, 1.5))))
+        candidates.append(
+            Mover(
+                "person",
+                int(rng.integers(len(SHIRTS))),
+                route,
+                float(rng.uniform(0, route.length)),
+                float(rng.uniform(0.8, 1.5)),
+            )
+        )
     px0, py0, px1, py1 = campus.plaza
     for _ in range(int(rng.integers(2, 5))):
-        candidates.append(Mover("person", int(rng.integers(len(SHIRTS))), None, 0.0, 0.0, float(rng.uniform(px0 + 1, px1 - 1)),
-                                float(rng.uniform(py0 + 1, py1 - 1)), float(rng.uniform(-math.pi, math.pi))))
+        candidates.append(
+            Mover(
+                "person",
+                int(rng.integers(len(SHIRTS))),
+                None,
+                0.0,
+                0.0,
+                float(rng.uniform(px0 + 1, px1 - 1)),
+                float(rng.uniform(py0 + 1, py1 - 1)),
+                float(rng.uniform(-math.pi, math.pi)),
+            )
+        )
     occupancy = float(rng.uniform(0.35, 0.9))
     for x, y, yaw in campus.parking:
         if rng.random() < occupancy:
-            candidates.append(Mover("car", int(rng.integers(len(CAR_PAINTS))), None, 0.0, 0.0, x, y, yaw + (math.pi if rng.random() < 0.5 else 0.0)))
+            candidates.append(
+                Mover(
+                    "car",
+                    int(rng.integers(len(CAR_PAINTS))),
+                    None,
+                    0.0,
+                    0.0,
+                    x,
+                    y,
+                    yaw + (math.pi if rng.random() < 0.5 else 0.0),
+                )
+            )
     kept: list[Mover] = []
     kept_pos: list[np.ndarray] = []
     for m in candidates:

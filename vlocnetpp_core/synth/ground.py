@@ -52,7 +52,9 @@ class GroundMap:
         if closed:
             p = np.vstack([p, p[:1]])
         t = max(1, int(round(width_m / RES)))
-        cv2.polylines(img, [self._pts(p).reshape(-1, 1, 2)], False, value, thickness=t, lineType=cv2.LINE_8, shift=SHIFT)
+        cv2.polylines(
+            img, [self._pts(p).reshape(-1, 1, 2)], False, value, thickness=t, lineType=cv2.LINE_8, shift=SHIFT
+        )
 
     def circle(self, img: np.ndarray, x: float, y: float, radius_m: float, value) -> None:
         c = self._pts([[x, y]])[0]

@@ -28,11 +28,16 @@ class Lighting:
     def sun_direction(self) -> np.ndarray:
         """Unit vector from the scene to the sun, world frame."""
         ce = math.cos(self.sun_elevation)
-        return np.array([ce * math.cos(self.sun_azimuth), ce * math.sin(self.sun_azimuth), math.sin(self.sun_elevation)])
+        return np.array(
+            [ce * math.cos(self.sun_azimuth), ce * math.sin(self.sun_azimuth), math.sin(self.sun_elevation)]
+        )
 
     def to_dict(self) -> dict:
         d = asdict(self)
-        return {k: (round(v, 4) if isinstance(v, float) else [round(x, 4) for x in v] if isinstance(v, tuple) else v) for k, v in d.items()}
+        return {
+            k: (round(v, 4) if isinstance(v, float) else [round(x, 4) for x in v] if isinstance(v, tuple) else v)
+            for k, v in d.items()
+        }
 
 
 # name: (sun elevation deg, sun, ambient, zenith, horizon, tint, clouds, haze)
@@ -47,7 +52,16 @@ _PRESETS = {
 PRESETS = tuple(sorted(_PRESETS))
 
 DEFAULT_LIGHTING = Lighting(
-    "noon", math.radians(200.0), math.radians(58.0), 0.75, 0.42, (0.25, 0.47, 0.85), (0.70, 0.80, 0.92), (1.0, 1.0, 0.98), 0.25, 900.0
+    "noon",
+    math.radians(200.0),
+    math.radians(58.0),
+    0.75,
+    0.42,
+    (0.25, 0.47, 0.85),
+    (0.70, 0.80, 0.92),
+    (1.0, 1.0, 0.98),
+    0.25,
+    900.0,
 )
 
 
@@ -82,9 +96,13 @@ def sky_color(lighting: Lighting, elevation: np.ndarray, azimuth: np.ndarray, cl
     sd = lighting.sun_direction()
     ce = np.cos(elevation)
     cosang = ce * np.cos(azimuth) * sd[0] + ce * np.sin(azimuth) * sd[1] + np.sin(elevation) * sd[2]
-    glow = (np.exp((cosang - 1.0) * 18.0) * (0.45 * lighting.sun) + np.exp((cosang - 1.0) * 900.0) * 1.5 * lighting.sun).astype(np.float32)
+    glow = (
+        np.exp((cosang - 1.0) * 18.0) * (0.45 * lighting.sun) + np.exp((cosang - 1.0) * 900.0) * 1.5 * lighting.sun
+    ).astype(np.float32)
     thr = 1.0 - lighting.clouds
     cov = np.clip((cloud - thr * 0.75 - 0.2) * 3.0, 0, 1).astype(np.float32) * min(1.0, lighting.clouds * 2.5)
-    cloud_col = np.float32(0.55 + 0.4 * lighting.ambient + 0.3 * lighting.sun) * (np.float32(0.85) + np.float32(0.15) * cloud[..., None])
+    cloud_col = np.float32(0.55 + 0.4 * lighting.ambient + 0.3 * lighting.sun) * (
+        np.float32(0.85) + np.float32(0.15) * cloud[..., None]
+    )
     col = col * (1 - cov[..., None]) + cloud_col * cov[..., None]
     return col + glow[..., None] * (1 - 0.8 * cov[..., None])

@@ -45,7 +45,9 @@ def mosaic(samples: list[tuple[str, np.ndarray, np.ndarray, np.ndarray]], tile_w
     return np.concatenate(rows, 0)
 
 
-def top_down_map(campus: Campus, trajectories: list[tuple[str, str, np.ndarray]], scale: float = 0.2, margin: float = 12.0) -> np.ndarray:
+def top_down_map(
+    campus: Campus, trajectories: list[tuple[str, str, np.ndarray]], scale: float = 0.2, margin: float = 12.0
+) -> np.ndarray:
     """North-up map (RGB) of the campus with ``(split, name, xy (N, 2))`` trajectories, 2 pixels per ``scale`` metres."""
     g = campus.ground
     level = min(max(int(round(math.log2(scale / RES))), 0), len(g.mips) - 1)
@@ -71,7 +73,9 @@ def top_down_map(campus: Campus, trajectories: list[tuple[str, str, np.ndarray]]
             color = (90, 90, 95) if P.label[i] == 6 else (160, 160, 160)
             cv2.fillConvexPoly(img, np.round(pts * 16).astype(np.int32), color, cv2.LINE_AA, 4)
         elif P.kind[i] == ELLIPSOID:
-            cv2.circle(img, tuple(int(v) for v in np.round(c * 16)), int(P.a[i] / s * 16), (60, 110, 45), -1, cv2.LINE_AA, 4)
+            cv2.circle(
+                img, tuple(int(v) for v in np.round(c * 16)), int(P.a[i] / s * 16), (60, 110, 45), -1, cv2.LINE_AA, 4
+            )
     counters = {"train": 0, "test": 0}
     legend = []
     for split, name, xy in trajectories:

@@ -72,15 +72,77 @@ class PrimsBuilder:
     def __len__(self) -> int:
         return len(self._rows)
 
-    def box(self, cx, cy, yaw, length, width, z0, z1, label, strip: Strip, cap: tuple[float, float], cutout=False) -> None:
+    def box(
+        self, cx, cy, yaw, length, width, z0, z1, label, strip: Strip, cap: tuple[float, float], cutout=False
+    ) -> None:
         """Box of full ``length`` along its yaw direction and full ``width`` across it."""
-        self._rows.append((BOX, cx, cy, np.cos(yaw), np.sin(yaw), length / 2, width / 2, z0, z1, label, strip.x0, strip.y0, strip.width_m, strip.height_m, cap[0], cap[1], cutout))
+        self._rows.append(
+            (
+                BOX,
+                cx,
+                cy,
+                np.cos(yaw),
+                np.sin(yaw),
+                length / 2,
+                width / 2,
+                z0,
+                z1,
+                label,
+                strip.x0,
+                strip.y0,
+                strip.width_m,
+                strip.height_m,
+                cap[0],
+                cap[1],
+                cutout,
+            )
+        )
 
     def cylinder(self, cx, cy, radius, z0, z1, label, strip: Strip, cap: tuple[float, float]) -> None:
-        self._rows.append((CYLINDER, cx, cy, 1.0, 0.0, radius, radius, z0, z1, label, strip.x0, strip.y0, strip.width_m, strip.height_m, cap[0], cap[1], False))
+        self._rows.append(
+            (
+                CYLINDER,
+                cx,
+                cy,
+                1.0,
+                0.0,
+                radius,
+                radius,
+                z0,
+                z1,
+                label,
+                strip.x0,
+                strip.y0,
+                strip.width_m,
+                strip.height_m,
+                cap[0],
+                cap[1],
+                False,
+            )
+        )
 
     def ellipsoid(self, cx, cy, zc, radius, half_height, label, strip: Strip) -> None:
-        self._rows.append((ELLIPSOID, cx, cy, 1.0, 0.0, radius, half_height, zc - half_height, zc + half_height, label, strip.x0, strip.y0, strip.width_m, strip.height_m, 0.0, 0.0, False))
+        self._rows.append(
+            (
+                ELLIPSOID,
+                cx,
+                cy,
+                1.0,
+                0.0,
+                radius,
+                half_height,
+                zc - half_height,
+                zc + half_height,
+                label,
+                strip.x0,
+                strip.y0,
+                strip.width_m,
+                strip.height_m,
+                0.0,
+                0.0,
+                False,
+            )
+        )
 
     def build(self) -> Prims:
         cols = list(zip(*self._rows, strict=True)) if self._rows else [[]] * 17

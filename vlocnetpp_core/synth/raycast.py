@@ -169,7 +169,9 @@ def _nearest_layers(hit: np.ndarray, key: np.ndarray):
     return order, np.minimum(nh, K), K
 
 
-def _zbuffer_prisms(P: Prims, cam: LevelCamera, zbuf: np.ndarray, code: np.ndarray, inv_n: np.ndarray, cutout: np.ndarray) -> dict:
+def _zbuffer_prisms(
+    P: Prims, cam: LevelCamera, zbuf: np.ndarray, code: np.ndarray, inv_n: np.ndarray, cutout: np.ndarray
+) -> dict:
     hit, tn, tf, ex, ey = _intersect_footprints(P, cam)
     order, nh, K = _nearest_layers(hit, np.maximum(tn, 0.0))
     if K == 0:
@@ -193,7 +195,11 @@ def _zbuffer_prisms(P: Prims, cam: LevelCamera, zbuf: np.ndarray, code: np.ndarr
     a, b = P.a[pid], P.b[pid]
     lx, ly = co * (ent_x - cx) + si * (ent_y - cy), -si * (ent_x - cx) + co * (ent_y - cy)
     xface = np.abs(lx) * b >= np.abs(ly) * a  # entry on an x' face (compare normalised coordinates)
-    u_box = np.where(xface, np.where(lx > 0, ly + b, 2 * b + 2 * a + (b - ly)), np.where(ly > 0, 2 * b + (a - lx), 4 * b + 2 * a + (lx + a)))
+    u_box = np.where(
+        xface,
+        np.where(lx > 0, ly + b, 2 * b + 2 * a + (b - ly)),
+        np.where(ly > 0, 2 * b + (a - lx), 4 * b + 2 * a + (lx + a)),
+    )
     nlx = np.where(xface, np.where(lx > 0, 1.0, -1.0), 0.0)
     nly = np.where(xface, 0.0, np.where(ly > 0, 1.0, -1.0))
     nbx, nby = co * nlx - si * nly, si * nlx + co * nly
@@ -225,12 +231,22 @@ def _zbuffer_prisms(P: Prims, cam: LevelCamera, zbuf: np.ndarray, code: np.ndarr
         _commit(zbuf, code, rows, cols, full, win, Z, k * Wl)
     flat = lambda a: np.ascontiguousarray(a.T).reshape(-1)  # noqa: E731  (K, W) -> slot order
     return {
-        "K": K, "r1": flat(R1).astype(np.float32), "label": flat(P.label[pid]), "z0": flat(z0), "z1": flat(z1),
+        "K": K,
+        "r1": flat(R1).astype(np.float32),
+        "label": flat(P.label[pid]),
+        "z0": flat(z0),
+        "z1": flat(z1),
         "ax": flat(P.tx[pid] + u * PPM - 0.5).astype(np.float32),  # atlas x of the side texel hit
         "ay": flat(P.ty[pid] + z1 * PPM - 0.5).astype(np.float32),  # atlas y of height 0 on the side strip
-        "nx": flat(nx), "ny": flat(ny),
-        "cap_x": flat(P.cap_x[pid]).astype(np.float32), "cap_y": flat(P.cap_y[pid]).astype(np.float32), "kind": flat(kind),
-        "off": flat(nx * ent_x + ny * ent_y), "cx": flat(cx), "cy": flat(cy), "a": flat(a),
+        "nx": flat(nx),
+        "ny": flat(ny),
+        "cap_x": flat(P.cap_x[pid]).astype(np.float32),
+        "cap_y": flat(P.cap_y[pid]).astype(np.float32),
+        "kind": flat(kind),
+        "off": flat(nx * ent_x + ny * ent_y),
+        "cx": flat(cx),
+        "cy": flat(cy),
+        "a": flat(a),
     }
 
 

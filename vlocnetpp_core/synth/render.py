@@ -70,7 +70,9 @@ def render_frame(
     if not t[2] > 0.05:
         raise ValueError(f"camera height must be above the ground, got z = {t[2]:.3f} m")
     if math.hypot(t[0] - campus.center[0], t[1] - campus.center[1]) > HILLS_RADIUS - 20:
-        raise ValueError(f"camera at ({t[0]:.1f}, {t[1]:.1f}) is outside the rendered world (within {HILLS_RADIUS - 20:.0f} m of the campus)")
+        raise ValueError(
+            f"camera at ({t[0]:.1f}, {t[1]:.1f}) is outside the rendered world (within {HILLS_RADIUS - 20:.0f} m of the campus)"
+        )
     W, H = intrinsics.width, intrinsics.height
     fx, fy, cx, cy = intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy
     rays = _pixel_rays(W, H, fx, fy, cx, cy)  # (3, H*W) output pixel rays, z = 1
@@ -104,7 +106,9 @@ def _pixel_rays(W: int, H: int, fx: float, fy: float, cx: float, cy: float) -> n
     return rays
 
 
-def _exact_depth(campus: Campus, img: LevelImage, cam: LevelCamera, dw: np.ndarray, nearest: np.ndarray, dz_level: np.ndarray) -> np.ndarray:
+def _exact_depth(
+    campus: Campus, img: LevelImage, cam: LevelCamera, dw: np.ndarray, nearest: np.ndarray, dz_level: np.ndarray
+) -> np.ndarray:
     """Depth ``(N,)`` along the optical axis of each output pixel's own ray, on the surface its label came from.
 
     ``dw (3, N)``: world directions of the output rays (camera z = 1, so the ray parameter is the

@@ -47,7 +47,12 @@ def _sample_atlas(campus: Campus, ax: np.ndarray, ay: np.ndarray, lod: np.ndarra
             continue
         x, y, f = ax[idx], ay[idx], frac[idx]
         lo = remap_points(campus.atlas[L], (x + 0.5) / 2.0**L - 0.5, (y + 0.5) / 2.0**L - 0.5, cv2.BORDER_REPLICATE)
-        hi = remap_points(campus.atlas[L + 1], (x + 0.5) / 2.0 ** (L + 1) - 0.5, (y + 0.5) / 2.0 ** (L + 1) - 0.5, cv2.BORDER_REPLICATE)
+        hi = remap_points(
+            campus.atlas[L + 1],
+            (x + 0.5) / 2.0 ** (L + 1) - 0.5,
+            (y + 0.5) / 2.0 ** (L + 1) - 0.5,
+            cv2.BORDER_REPLICATE,
+        )
         lo = lo.astype(np.float32)
         out[idx] = lo * np.float32(1 / 255) + (hi.astype(np.float32) - lo) * f
     return out
@@ -84,8 +89,12 @@ def _hills(campus: Campus, cam: LevelCamera, img: LevelImage, lt: Lighting):
         return None
     hgt = cam.h - img.rho_h[xs] * cam.sigma[ys, xs]
     tex = campus.hills_rgb
-    c = remap_points(tex, img.theta[xs] / (2 * math.pi) * tex.shape[1] - 0.5, (1 - hgt / HILLS_MAX_M) * tex.shape[0] - 0.5,
-                     cv2.BORDER_REPLICATE).astype(np.float32)
+    c = remap_points(
+        tex,
+        img.theta[xs] / (2 * math.pi) * tex.shape[1] - 0.5,
+        (1 - hgt / HILLS_MAX_M) * tex.shape[0] - 0.5,
+        cv2.BORDER_REPLICATE,
+    ).astype(np.float32)
     return ys, xs, c * np.float32((lt.ambient + 0.6 * lt.sun) / 255.0), 0
 
 
@@ -99,7 +108,9 @@ def _prisms(campus: Campus, cam: LevelCamera, img: LevelImage, lt: Lighting):
     Z = img.zbuf[ys, xs]
     sd = lt.sun_direction().astype(np.float32)
     is_cap = Z * cam.n_u32[xs] > P["r1"][s] * np.float32(1 + 1e-4) + np.float32(1e-4)
-    side_light = (lt.ambient + lt.sun * np.maximum(P["nx"] * sd[0] + P["ny"] * sd[1], 0.0)).astype(np.float32)  # per slot
+    side_light = (lt.ambient + lt.sun * np.maximum(P["nx"] * sd[0] + P["ny"] * sd[1], 0.0)).astype(
+        np.float32
+    )  # per slot
     light = side_light[s]
     ax = P["ax"][s]
     ay = P["ay"][s] - (cam.h - Z * cam.s_v[ys]) * np.float32(PPM)
@@ -131,7 +142,11 @@ def _crowns(campus: Campus, cam: LevelCamera, img: LevelImage, lt: Lighting):
     sd = lt.sun_direction().astype(np.float32)
     X = (cam.x - pr.cx[p]).astype(np.float32) + Z * cam.dx32[xs]  # hit point relative to the crown centre
     Y = (cam.y - pr.cy[p]).astype(np.float32) + Z * cam.dy32[xs]
-    zc, bv, a = ((pr.z0 + pr.z1) / 2)[p].astype(np.float32), ((pr.z1 - pr.z0) / 2)[p].astype(np.float32), pr.a[p].astype(np.float32)
+    zc, bv, a = (
+        ((pr.z0 + pr.z1) / 2)[p].astype(np.float32),
+        ((pr.z1 - pr.z0) / 2)[p].astype(np.float32),
+        pr.a[p].astype(np.float32),
+    )
     dz = (cam.h - zc) - Z * cam.s_v[ys]
     az = np.arctan2(Y, X) * np.float32(1 / (2 * math.pi))
     az += az < 0
@@ -146,7 +161,9 @@ def _crowns(campus: Campus, cam: LevelCamera, img: LevelImage, lt: Lighting):
 
 def _haze(cam: LevelCamera, img: LevelImage, lt: Lighting, col: np.ndarray) -> np.ndarray:
     """``uint8`` RGB of ``col * f + horizon * (1 - f)``, ``f = exp(-distance / haze)``; the sky keeps f = 1."""
-    f = np.exp(np.where(img.code != SKY_CODE, img.zbuf, np.float32(0.0)) * (cam.n_u32 / np.float32(-lt.haze_m))[None, :])
+    f = np.exp(
+        np.where(img.code != SKY_CODE, img.zbuf, np.float32(0.0)) * (cam.n_u32 / np.float32(-lt.haze_m))[None, :]
+    )
     hor = np.empty_like(col)
     hor[:] = np.asarray(lt.sky_horizon, np.float32)
     return cv2.convertScaleAbs(cv2.blendLinear(col, hor, f, np.float32(1.0) - f), alpha=255.0)
@@ -170,20 +187,39 @@ def _ground(campus: Campus, cam: LevelCamera, lt: Lighting, r0: int, tint: np.nd
             continue
         a, b = rows[0], rows[-1] + 1
         s = 2.0**L
-        smp = cv2.remap(g.mips[L], (mc[a:b] + 0.5) / s - 0.5, (mr[a:b] + 0.5) / s - 0.5, cv2.INTER_LINEAR,
-                        borderMode=cv2.BORDER_CONSTANT, borderValue=border)
+        smp = cv2.remap(
+            g.mips[L],
+            (mc[a:b] + 0.5) / s - 0.5,
+            (mr[a:b] + 0.5) / s - 0.5,
+            cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_CONSTANT,
+            borderValue=border,
+        )
         alb[a:b] += smp.astype(np.float32) * (w[a:b] / 255.0)[:, None, None]
     outside_light = lt.ambient + lt.sun * max(0.0, math.sin(lt.sun_elevation))
-    shade = cv2.remap(campus.ground_light(lt), (mc + 0.5) / 2 - 0.5, (mr + 0.5) / 2 - 0.5, cv2.INTER_LINEAR,
-                      borderMode=cv2.BORDER_CONSTANT, borderValue=outside_light)
-    labels = cv2.remap(g.labels, np.rint(mc), np.rint(mr), cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    shade = cv2.remap(
+        campus.ground_light(lt),
+        (mc + 0.5) / 2 - 0.5,
+        (mr + 0.5) / 2 - 0.5,
+        cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=outside_light,
+    )
+    labels = cv2.remap(
+        g.labels, np.rint(mc), np.rint(mr), cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0
+    )
     near = np.nonzero(fp < DETAIL_FADE[1])[0]  # fine grain where a pixel is smaller than a raster cell
     if len(near):
         a = near[0]
         fade = np.clip((DETAIL_FADE[1] - fp[a:]) / (DETAIL_FADE[1] - DETAIL_FADE[0]), 0, 1).astype(np.float32)
         k = np.float32(RES / DETAIL_RES)
-        grain = cv2.remap(g.detail, (mc[a:] + np.float32(0.5 + g.x0 / RES)) * k, (mr[a:] + np.float32(0.5 + g.y0 / RES)) * k,
-                          cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+        grain = cv2.remap(
+            g.detail,
+            (mc[a:] + np.float32(0.5 + g.x0 / RES)) * k,
+            (mr[a:] + np.float32(0.5 + g.y0 / RES)) * k,
+            cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_WRAP,
+        )
         shade[a:] *= 1.0 + grain * g.detail_amount[labels[a:]] * fade[:, None]
     alb *= shade[..., None]
     alb *= tint
@@ -213,5 +249,8 @@ def _reflection(campus: Campus, cam: LevelCamera, lt: Lighting, ys, xs, nx, ny) 
     nb = len(campus.skyline)
     line = campus.skyline[(np.mod(az, 2 * math.pi) / (2 * math.pi) * nb).astype(int) % nb]
     fac = np.float32(lt.ambient + 0.4 * lt.sun)
-    below = np.where((el < 0)[:, None], np.array([0.30, 0.34, 0.26], np.float32), np.array([0.42, 0.40, 0.38], np.float32)) * fac
+    below = (
+        np.where((el < 0)[:, None], np.array([0.30, 0.34, 0.26], np.float32), np.array([0.42, 0.40, 0.38], np.float32))
+        * fac
+    )
     return np.where((el > line)[:, None], sky, below)

@@ -73,7 +73,16 @@ class Canvas:
     def _span(self, a: float, b: float, n: int) -> slice:
         return slice(max(0, int(round(a * PPM))), min(n, max(int(round(b * PPM)), int(round(a * PPM)) + 1)))
 
-    def rect(self, u0: float, v0: float, u1: float, v1: float, color=None, refl: float | None = None, hole: bool | None = None):
+    def rect(
+        self,
+        u0: float,
+        v0: float,
+        u1: float,
+        v1: float,
+        color=None,
+        refl: float | None = None,
+        hole: bool | None = None,
+    ):
         """Paint the rectangle ``[u0, u1] x [v0, v1]`` (metres from the strip's left and top edges)."""
         if u1 <= u0 or v1 <= v0:
             return
@@ -141,7 +150,9 @@ class AtlasBuilder:
         hole = np.zeros(atlas.shape[:2], np.uint8)
         g = GUTTER
         for x, y, c in self._items:
-            atlas[y : y + c.h + 2 * g, x : x + c.w + 2 * g] = cv2.copyMakeBorder(c.rgba(), g, g, g, g, cv2.BORDER_REPLICATE)
+            atlas[y : y + c.h + 2 * g, x : x + c.w + 2 * g] = cv2.copyMakeBorder(
+                c.rgba(), g, g, g, g, cv2.BORDER_REPLICATE
+            )
             hole[y + g : y + g + c.h, x + g : x + g + c.w] = c.hole
         levels = [atlas]
         for _ in range(1, LEVELS):
@@ -209,7 +220,13 @@ def paint_facade(c: Canvas, rng: np.random.Generator, u0: float, length: float, 
                         else:
                             _window(c, rng, x, v_floor - style.sill - style.window_height, style)
                 if style.band is not None:
-                    c.rect(u0, v_floor - style.floor_height - 0.15, u0 + length, v_floor - style.floor_height + 0.15, style.band)
+                    c.rect(
+                        u0,
+                        v_floor - style.floor_height - 0.15,
+                        u0 + length,
+                        v_floor - style.floor_height + 0.15,
+                        style.band,
+                    )
                 continue
             if style.ribbon:
                 y0 = v_floor - style.sill - style.window_height
@@ -247,7 +264,9 @@ def box_faces(length: float, width: float) -> list[tuple[float, float]]:
     return [(float(a), float(b)) for a, b in zip(starts, lens, strict=True)]
 
 
-def building_strip(rng: np.random.Generator, length: float, width: float, height: float, style: FacadeStyle, mural: int | None = None) -> Canvas:
+def building_strip(
+    rng: np.random.Generator, length: float, width: float, height: float, style: FacadeStyle, mural: int | None = None
+) -> Canvas:
     """Facade strip of a ``length x width x height`` box building; ``mural`` paints a unique panel on face ``mural``."""
     per = 2 * (length + width)
     c = Canvas(per, height, style.wall)
@@ -298,7 +317,9 @@ def metal_strip(rng: np.random.Generator, radius: float, height: float, color: i
     return c
 
 
-def fence_strip(rng: np.random.Generator, length: float, width: float, height: float, color: int, post_spacing: float, mesh: float) -> Canvas:
+def fence_strip(
+    rng: np.random.Generator, length: float, width: float, height: float, color: int, post_spacing: float, mesh: float
+) -> Canvas:
     """A see-through fence (posts, rails and a vertical-bar mesh) around a thin box."""
     per = 2 * (length + width)
     c = Canvas(per, height, color)
@@ -317,7 +338,9 @@ def fence_strip(rng: np.random.Generator, length: float, width: float, height: f
     return c
 
 
-def panel_strip(rng: np.random.Generator, length: float, width: float, height: float, colors: list[int], refl: float = 0.0) -> Canvas:
+def panel_strip(
+    rng: np.random.Generator, length: float, width: float, height: float, colors: list[int], refl: float = 0.0
+) -> Canvas:
     """A box whose faces carry coloured stripes (signs, kiosks, billboards, benches)."""
     per = 2 * (length + width)
     c = Canvas(per, height, colors[0], refl=refl)
@@ -326,7 +349,13 @@ def panel_strip(rng: np.random.Generator, length: float, width: float, height: f
             continue
         n = len(colors)
         for i in range(1, n):
-            c.rect(u0 + 0.05 * flen, height * (i / n) - 0.5 * height / n + 0.02 * height, u0 + 0.95 * flen, height * (i / n) + 0.45 * height / n, colors[i])
+            c.rect(
+                u0 + 0.05 * flen,
+                height * (i / n) - 0.5 * height / n + 0.02 * height,
+                u0 + 0.95 * flen,
+                height * (i / n) + 0.45 * height / n,
+                colors[i],
+            )
     c.shade_noise(rng, 0.05, 0.4)
     return c
 
@@ -362,7 +391,9 @@ def car_strip(rng: np.random.Generator, length: float, width: float, height: flo
     return c
 
 
-def person_strip(rng: np.random.Generator, length: float, width: float, height: float, shirt: int, trousers: int) -> Canvas:
+def person_strip(
+    rng: np.random.Generator, length: float, width: float, height: float, shirt: int, trousers: int
+) -> Canvas:
     per = 2 * (length + width)
     c = Canvas(per, height, trousers)
     c.rect(0, 0.0, per, 0.25, 0x3A2A1E)  # hair

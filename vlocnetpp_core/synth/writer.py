@@ -52,8 +52,16 @@ def format_pose(name: str, t: np.ndarray, q: np.ndarray) -> str:
     return f"{name} {t[0]:.6f} {t[1]:.6f} {t[2]:.6f} {q[0]:.8f} {q[1]:.8f} {q[2]:.8f} {q[3]:.8f}"
 
 
-def check_render_args(scene: str, seed: int, train_loops: int, test_loops: int, frames_per_loop: int, size, frame_interval,
-                      lane_wander: float = 0.0) -> tuple[int, int]:
+def check_render_args(
+    scene: str,
+    seed: int,
+    train_loops: int,
+    test_loops: int,
+    frames_per_loop: int,
+    size,
+    frame_interval,
+    lane_wander: float = 0.0,
+) -> tuple[int, int]:
     """``(width, height)`` of ``size``; :class:`UserError` naming the flag of the first bad argument."""
     if not isinstance(scene, str) or not re.fullmatch(r"[A-Za-z0-9_.-]{1,64}", scene):
         raise UserError(f"--scene must be a name of letters, digits, '_', '.', '-' (at most 64), got {scene!r}")
@@ -102,19 +110,44 @@ def render_dataset(
     an existing ``out`` without ``force``.
     """
     w, h = check_render_args(scene, seed, train_loops, test_loops, frames_per_loop, size, frame_interval, lane_wander)
-    if test_lane_offset is not None and not (math.isfinite(test_lane_offset) and abs(test_lane_offset) <= MAX_LANE_OFFSET_M):
-        raise UserError(f"--test-lane-offset must be within +-{MAX_LANE_OFFSET_M:g} m of the centreline (the sidewalks), got {test_lane_offset}")
+    if test_lane_offset is not None and not (
+        math.isfinite(test_lane_offset) and abs(test_lane_offset) <= MAX_LANE_OFFSET_M
+    ):
+        raise UserError(
+            f"--test-lane-offset must be within +-{MAX_LANE_OFFSET_M:g} m of the centreline (the sidewalks), got {test_lane_offset}"
+        )
     out = Path(out)
     with atomic_output_dir(out, force) as tmp:
-        summary = _render_into(tmp, scene, int(seed), train_loops, test_loops, frames_per_loop, (w, h), progress, frame_interval,
-                               test_lane_offset, lane_wander)
+        summary = _render_into(
+            tmp,
+            scene,
+            int(seed),
+            train_loops,
+            test_loops,
+            frames_per_loop,
+            (w, h),
+            progress,
+            frame_interval,
+            test_lane_offset,
+            lane_wander,
+        )
     summary["out"] = str(out)
     return summary
 
 
-def _render_into(root: Path, scene: str, seed: int, train_loops: int, test_loops: int, frames: int, size: tuple[int, int],
-                 progress: bool, frame_interval: float | None, test_lane_offset: float | None = None,
-                 lane_wander: float = 0.0) -> dict:
+def _render_into(
+    root: Path,
+    scene: str,
+    seed: int,
+    train_loops: int,
+    test_loops: int,
+    frames: int,
+    size: tuple[int, int],
+    progress: bool,
+    frame_interval: float | None,
+    test_lane_offset: float | None = None,
+    lane_wander: float = 0.0,
+) -> dict:
     from tqdm import tqdm
 
     t_start = time.perf_counter()
@@ -143,22 +176,42 @@ def _render_into(root: Path, scene: str, seed: int, train_loops: int, test_loops
             picks = set(np.linspace(0, n_loops * frames - 1, MOSAIC_ROWS_PER_SPLIT).round().astype(int).tolist())
             for loop in range(n_loops):
                 train = split == "train"  # wander moves the train loops, the lane offset the test loops
-                visit = plan_visit(campus, seed, split, loop, frames, frame_interval, None if train else test_lane_offset,
-                                   lane_wander if train else 0.0)
+                visit = plan_visit(
+                    campus,
+                    seed,
+                    split,
+                    loop,
+                    frames,
+                    frame_interval,
+                    None if train else test_lane_offset,
+                    lane_wander if train else 0.0,
+                )
                 info = visit.info()
                 info["first_id"] = loop * ID_STRIDE + 1
                 loop_info.append(info)
-                trajectories.append((split, f"loop {loop}: {visit.pattern.circuit} {'cw' if visit.pattern.clockwise else 'ccw'}, "
-                                            f"{visit.pattern.lane}, {visit.lighting.name}", visit.t[:, :2]))
+                trajectories.append(
+                    (
+                        split,
+                        f"loop {loop}: {visit.pattern.circuit} {'cw' if visit.pattern.clockwise else 'ccw'}, "
+                        f"{visit.pattern.lane}, {visit.lighting.name}",
+                        visit.t[:, :2],
+                    )
+                )
                 for i in range(frames):
                     name = f"Image_{loop * ID_STRIDE + i + 1}"
                     line = format_pose(name + ".png", visit.t[i], visit.q[i])
                     vals = [float(v) for v in line.split()[1:]]  # render exactly the pose that is written
                     t0 = time.perf_counter()
-                    rgb, labels, depth = render_frame(campus, vals[:3], vals[3:], K, visit.lighting, visit.objects_at(i))
+                    rgb, labels, depth = render_frame(
+                        campus, vals[:3], vals[3:], K, visit.lighting, visit.objects_at(i)
+                    )
                     render_time += time.perf_counter() - t0
-                    files = ((img_dir / f"{name}.png", rgb[..., ::-1]), (lab_dir / f"{name}.png", labels),
-                             (col_dir / f"{name}.png", colorize(labels)[..., ::-1]), (dep_dir / f"{name}.pfm", depth))
+                    files = (
+                        (img_dir / f"{name}.png", rgb[..., ::-1]),
+                        (lab_dir / f"{name}.png", labels),
+                        (col_dir / f"{name}.png", colorize(labels)[..., ::-1]),
+                        (dep_dir / f"{name}.pfm", depth),
+                    )
                     writer.submit(_write_files, files)
                     lines.append(line)
                     if loop * frames + i in picks:
@@ -169,10 +222,22 @@ def _render_into(root: Path, scene: str, seed: int, train_loops: int, test_loops
     finally:
         writer.close()
         bar.close()
-    _write_scene_info(root, campus, samples, trajectories, {
-        "scene": scene, "seed": seed, "size": list(size), "frames_per_loop": frames, "loops": loops,
-        "frame_interval_s": frame_interval, "intrinsics": K.to_dict(), "visits": loop_info,
-    })
+    _write_scene_info(
+        root,
+        campus,
+        samples,
+        trajectories,
+        {
+            "scene": scene,
+            "seed": seed,
+            "size": list(size),
+            "frames_per_loop": frames,
+            "loops": loops,
+            "frame_interval_s": frame_interval,
+            "intrinsics": K.to_dict(),
+            "visits": loop_info,
+        },
+    )
     return {
         "scene": scene,
         "seed": seed,

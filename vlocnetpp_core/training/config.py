@@ -94,8 +94,10 @@ class TrainConfig:
         """A config from a mapping of field names (a JSON file, a recipe stage); ``ConfigError`` naming an unknown key."""
         unknown = sorted(set(values) - set(cls.keys()))
         if unknown:
-            raise ConfigError(unknown[0], f"unknown key {', '.join(map(repr, unknown))} (a train flag with _ for -: "
-                                          f"{', '.join(cls.keys())})")
+            raise ConfigError(
+                unknown[0],
+                f"unknown key {', '.join(map(repr, unknown))} (a train flag with _ for -: {', '.join(cls.keys())})",
+            )
         missing = [key for key in ("config", "data", "stage", "out") if values.get(key) is None]
         if missing:
             raise ConfigError(missing[0], f"{', '.join(map(flag, missing))} required")
@@ -170,9 +172,19 @@ def _check(c: TrainConfig) -> None:
         raise ConfigError("stage", f"--stage must be one of {', '.join(STAGES)}, got {c.stage!r}")
     if c.format is not None and c.format not in FORMATS:
         raise ConfigError("format", f"--format must be one of {', '.join(FORMATS)}, got {c.format!r}")
-    for key, low, allow_equal in (("steps", 0, True), ("epochs", 0, False), ("batch_size", 1, True), ("clip_len", 1, True),
-                                  ("val_every", 0, True), ("save_every_s", 0, False), ("workers", 0, True), ("threads", 0, True),
-                                  ("lr", 0, False), ("lr_end", 0, True), ("crop_scale", 1, True)):
+    for key, low, allow_equal in (
+        ("steps", 0, True),
+        ("epochs", 0, False),
+        ("batch_size", 1, True),
+        ("clip_len", 1, True),
+        ("val_every", 0, True),
+        ("save_every_s", 0, False),
+        ("workers", 0, True),
+        ("threads", 0, True),
+        ("lr", 0, False),
+        ("lr_end", 0, True),
+        ("crop_scale", 1, True),
+    ):
         value = getattr(c, key)
         if value is not None and not (math.isfinite(value) and (value >= low if allow_equal else value > low)):
             hint = " (--steps 0 assembles mtl from its stages without training)" if key == "epochs" else ""

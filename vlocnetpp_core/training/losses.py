@@ -50,7 +50,9 @@ from vlocnetpp_core.training.config import S_Q_INIT
 S_X_INIT = 0.0
 
 
-def pose_errors(xyz: torch.Tensor, quat: torch.Tensor, t: torch.Tensor, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def pose_errors(
+    xyz: torch.Tensor, quat: torch.Tensor, t: torch.Tensor, q: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Mean ``||t - xyz||_2`` and ``min(||q - quat||_2, ||q + quat||_2)`` over the batch: ``(..., 3)``, ``(..., 4)`` -> two scalars.
 
     ``q`` and ``-q`` are the same rotation. Canonical ``w >= 0`` quaternions jump to the other sign
@@ -78,7 +80,9 @@ def selection_score(metrics: dict[str, float], reference: dict[str, float]) -> f
     """
     terms = [k for k in METRIC_TERMS if k in metrics and k in reference]
     if not terms:
-        raise ValueError(f"no metric term ({', '.join(METRIC_TERMS)}) in both {sorted(metrics)} and {sorted(reference)}")
+        raise ValueError(
+            f"no metric term ({', '.join(METRIC_TERMS)}) in both {sorted(metrics)} and {sorted(reference)}"
+        )
     return sum(metrics[k] / max(reference[k], 1e-12) for k in terms) / len(terms)
 
 
@@ -92,7 +96,9 @@ def segmentation_loss(logits: torch.Tensor, labels: torch.Tensor) -> tuple[torch
     labels = labels.long()
     if labels.shape[-2:] != logits.shape[-2:]:
         raise ValueError(f"labels {tuple(labels.shape)} do not match the logits {tuple(logits.shape)}")
-    return F.cross_entropy(logits, labels, ignore_index=IGNORE_INDEX, reduction="sum"), int((labels != IGNORE_INDEX).sum())
+    return F.cross_entropy(logits, labels, ignore_index=IGNORE_INDEX, reduction="sum"), int(
+        (labels != IGNORE_INDEX).sum()
+    )
 
 
 def depth_loss(pred: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, int]:
@@ -124,8 +130,13 @@ class VLocNetLoss(nn.Module):
     losses (``loc``, ``vo``), detached.
     """
 
-    def __init__(self, tasks: str | Iterable[str] = TASKS, learned_weighting: bool | None = None, depth: bool = True,
-                 s_q_init: float = S_Q_INIT):
+    def __init__(
+        self,
+        tasks: str | Iterable[str] = TASKS,
+        learned_weighting: bool | None = None,
+        depth: bool = True,
+        s_q_init: float = S_Q_INIT,
+    ):
         super().__init__()
         if isinstance(tasks, str):
             if tasks not in STAGE_TASKS:
@@ -149,7 +160,9 @@ class VLocNetLoss(nn.Module):
             if self.depth:
                 self.s_depth = s(0.0)
 
-    def forward(self, outputs: Sequence[StepOutput], batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    def forward(
+        self, outputs: Sequence[StepOutput], batch: dict[str, torch.Tensor]
+    ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         terms: list[torch.Tensor] = []
         parts: dict[str, torch.Tensor] = {}
         T = len(outputs)
@@ -160,25 +173,35 @@ class VLocNetLoss(nn.Module):
             x_err, q_err = parts["x"], parts["q"]
             if T > 1:
                 rel_xyz, rel_quat = relative_pose(xyz[:, :-1], quat[:, :-1], xyz[:, 1:], quat[:, 1:])
-                parts["x_rel"], parts["q_rel"] = pose_errors(rel_xyz, rel_quat, batch["rel_t"][:, 1:T], batch["rel_q"][:, 1:T])
+                parts["x_rel"], parts["q_rel"] = pose_errors(
+                    rel_xyz, rel_quat, batch["rel_t"][:, 1:T], batch["rel_q"][:, 1:T]
+                )
                 x_err, q_err = x_err + parts["x_rel"], q_err + parts["q_rel"]
             loc = weighted(x_err, self.s_x) + weighted(q_err, self.s_q)
             if outputs[0].anchor_logits is not None:
-                parts["anchor"] = anchor_loss([o.anchor_logits for o in outputs], outputs[0].anchor_xyz, batch["t"][:, :T])
+                parts["anchor"] = anchor_loss(
+                    [o.anchor_logits for o in outputs], outputs[0].anchor_xyz, batch["t"][:, :T]
+                )
                 loc = loc + parts["anchor"]
             if outputs[0].rotation_logits is not None:
-                parts["anchor_q"] = rotation_anchor_loss([o.rotation_logits for o in outputs], outputs[0].anchor_quat, batch["q"][:, :T])
+                parts["anchor_q"] = rotation_anchor_loss(
+                    [o.rotation_logits for o in outputs], outputs[0].anchor_quat, batch["q"][:, :T]
+                )
                 loc = loc + parts["anchor_q"]
             parts["loc"] = loc
             terms.append(loc)
         if "vo" in self.tasks and T > 1:
             rel_xyz = torch.stack([_need(o.rel_xyz, "rel_xyz") for o in outputs[1:]], 1)
             rel_quat = torch.stack([_need(o.rel_quat, "rel_quat") for o in outputs[1:]], 1)
-            parts["x_vo"], parts["q_vo"] = pose_errors(rel_xyz, rel_quat, batch["rel_t"][:, 1:T], batch["rel_q"][:, 1:T])
+            parts["x_vo"], parts["q_vo"] = pose_errors(
+                rel_xyz, rel_quat, batch["rel_t"][:, 1:T], batch["rel_q"][:, 1:T]
+            )
             parts["vo"] = weighted(parts["x_vo"], self.s_x_vo) + weighted(parts["q_vo"], self.s_q_vo)
             terms.append(parts["vo"])
         if "seg" in self.tasks:
-            total, count = _sum_over_frames(segmentation_loss, [_need(o.seg_logits, "seg_logits") for o in outputs], batch["labels"])
+            total, count = _sum_over_frames(
+                segmentation_loss, [_need(o.seg_logits, "seg_logits") for o in outputs], batch["labels"]
+            )
             if count:
                 parts["seg"] = total / count
                 terms.append(weighted(parts["seg"], self.s_seg) if self.learned_weighting else parts["seg"])
@@ -219,5 +242,7 @@ def _sum_over_frames(fn, predictions: list[torch.Tensor], targets: torch.Tensor)
 
 def _need(value: torch.Tensor | None, name: str) -> torch.Tensor:
     if value is None:
-        raise ValueError(f"the model output has no {name}: was the stream run (step tasks=...) and is its branch in the config?")
+        raise ValueError(
+            f"the model output has no {name}: was the stream run (step tasks=...) and is its branch in the config?"
+        )
     return value

@@ -149,9 +149,13 @@ def _known(entry: dict, known, where: str, refused=()) -> None:
     """``UserError`` naming the first key of ``entry`` that is refused or not ``known``."""
     for key in entry:
         if key in refused:
-            raise UserError(f"{where}: '{key}' is set by the recipe (the schedule, the run folder, init), not by a stage")
+            raise UserError(
+                f"{where}: '{key}' is set by the recipe (the schedule, the run folder, init), not by a stage"
+            )
         if key not in known:
-            raise UserError(f"{where}: unknown key '{key}' (known: {', '.join(dict.fromkeys(k for k in known if k not in refused))})")
+            raise UserError(
+                f"{where}: unknown key '{key}' (known: {', '.join(dict.fromkeys(k for k in known if k not in refused))})"
+            )
 
 
 def _stage(raw, k: int, names: list, defaults: dict, datasets: dict, path: Path) -> Stage:
@@ -159,8 +163,10 @@ def _stage(raw, k: int, names: list, defaults: dict, datasets: dict, path: Path)
     entry = {**defaults, **_keys(raw, f"{path}: stage {k}")}
     where = f"{path}: stage {k} ({entry.get('name', 'unnamed')})"
     if "parallel" in entry:
-        raise UserError(f"{where}: 'parallel' is gone: stages now start as soon as their inits are done and their "
-                        "threads fit in the free cores (give each stage's threads instead)")
+        raise UserError(
+            f"{where}: 'parallel' is gone: stages now start as soon as their inits are done and their "
+            "threads fit in the free cores (give each stage's threads instead)"
+        )
     _known(entry, (*STAGE_KEYS, *TrainConfig.keys()), where, SET_BY_RECIPE)
     for key in ("name", "stage", "schedule"):
         if key not in entry:
@@ -170,18 +176,32 @@ def _stage(raw, k: int, names: list, defaults: dict, datasets: dict, path: Path)
     refs = [*(entry.get("init") or []), *([entry["continue"]] if "continue" in entry else [])]
     for ref in refs:
         if ref not in names[:k]:
-            why = " (a later stage or itself: stages run in file order, so that would be a cycle)" if ref in names else ""
+            why = (
+                " (a later stage or itself: stages run in file order, so that would be a cycle)" if ref in names else ""
+            )
             raise UserError(f"{where}: '{ref}' (init or continue) is not an earlier stage{why}")
     for key in ("data", "val_data"):
         if key in entry and entry[key] not in datasets:
-            raise UserError(f"{where}: {key} '{entry[key]}' is not one of the recipe's datasets ({', '.join(datasets) or 'none'})")
+            raise UserError(
+                f"{where}: {key} '{entry[key]}' is not one of the recipe's datasets ({', '.join(datasets) or 'none'})"
+            )
     weights = entry.get("weights", "best")
     if weights not in WEIGHTS:
         raise UserError(f"{where}: weights must be one of {', '.join(WEIGHTS)}, got {weights!r}")
     config = None if entry.get("config") is None else _stage_config(str(entry["config"]), path, where)
     train = {key: v for key, v in entry.items() if key not in STAGE_KEYS}
-    return Stage(entry["name"], entry["stage"], _schedule(entry["schedule"], where), list(entry.get("init") or []), train,
-                 entry.get("continue"), config, weights, entry.get("data"), entry.get("val_data"))
+    return Stage(
+        entry["name"],
+        entry["stage"],
+        _schedule(entry["schedule"], where),
+        list(entry.get("init") or []),
+        train,
+        entry.get("continue"),
+        config,
+        weights,
+        entry.get("data"),
+        entry.get("val_data"),
+    )
 
 
 def _export(export, names: list, datasets: dict, path: Path) -> dict | None:
@@ -211,24 +231,39 @@ def _export(export, names: list, datasets: dict, path: Path) -> dict | None:
         references = [export["reference"]] if isinstance(export["reference"], str) else list(export["reference"])
         unknown = [name for name in references if name not in datasets]
         if unknown:
-            raise UserError(f"{path}: export reference {', '.join(map(repr, unknown))} is not one of the recipe's datasets "
-                            f"({', '.join(datasets) or 'none'})")
+            raise UserError(
+                f"{path}: export reference {', '.join(map(repr, unknown))} is not one of the recipe's datasets "
+                f"({', '.join(datasets) or 'none'})"
+            )
         export = {**export, "reference": references}
     if not isinstance(export.get("to"), str):
         raise UserError(f"{where}: 'to' (the path of the exported weights, NAME) is required")
     return export
+
+
 def _schedule(raw, where: str) -> list[Entry]:
     """A stage's ``schedule`` list as entries; ``UserError`` for a malformed entry or steps out of order."""
     try:
-        schedule = [Entry(int(s["steps"]), float(s["lr"]), None if s.get("lr_end") is None else float(s["lr_end"]), _flag(s.get("restart", False)))
-                    for s in raw]
+        schedule = [
+            Entry(
+                int(s["steps"]),
+                float(s["lr"]),
+                None if s.get("lr_end") is None else float(s["lr_end"]),
+                _flag(s.get("restart", False)),
+            )
+            for s in raw
+        ]
     except (TypeError, KeyError, ValueError, AttributeError):
-        raise UserError(f"{where}: 'schedule' must be a list of {{steps: N, lr: R}} (optionally lr_end: R, a cosine to R, "
-                        "and restart: true, a fresh optimiser state)") from None
+        raise UserError(
+            f"{where}: 'schedule' must be a list of {{steps: N, lr: R}} (optionally lr_end: R, a cosine to R, "
+            "and restart: true, a fresh optimiser state)"
+        ) from None
     if not schedule or any(b.steps < a.steps for a, b in zip(schedule[:-1], schedule[1:], strict=True)):
         raise UserError(f"{where}: 'schedule' steps must be given in increasing order")
     if schedule[0].restart:
-        raise UserError(f"{where}: the first schedule entry cannot restart (there is nothing before it to restart from)")
+        raise UserError(
+            f"{where}: the first schedule entry cannot restart (there is nothing before it to restart from)"
+        )
     return schedule
 
 
@@ -246,8 +281,10 @@ def _stage_config(value: str, recipe_path: Path, where: str) -> str:
         return value
     resolved = (recipe_path.parent / value).resolve()
     if not resolved.is_file():
-        raise UserError(f"{where}: config '{value}' is neither a built-in model config ({', '.join(BUILTIN_CONFIGS)}) "
-                        f"nor a file next to the recipe ({resolved})")
+        raise UserError(
+            f"{where}: config '{value}' is neither a built-in model config ({', '.join(BUILTIN_CONFIGS)}) "
+            f"nor a file next to the recipe ({resolved})"
+        )
     return str(resolved)
 
 
@@ -278,8 +315,14 @@ def stage_configs(stage: Stage, recipe: Recipe, out: Path, done: int | None = No
     """The ``TrainConfig`` of every schedule entry of ``stage`` still to run from step ``done`` (default: the step its
     run folder in ``out`` has reached; -1: from the start), each resuming (or restarting) from the one before."""
     done = stage_step(out / stage.name) if done is None else done
-    base = {**stage.train, "config": stage.config or recipe.config, "stage": stage.stage, "out": str(out / stage.name),
-            "no_progress": True, "init": [str(stage_weights(recipe, ref, out).with_suffix(".safetensors")) for ref in stage.init]}
+    base = {
+        **stage.train,
+        "config": stage.config or recipe.config,
+        "stage": stage.stage,
+        "out": str(out / stage.name),
+        "no_progress": True,
+        "init": [str(stage_weights(recipe, ref, out).with_suffix(".safetensors")) for ref in stage.init],
+    }
     for key in ("data", "val_data"):
         if getattr(stage, key) is not None:
             base[key] = str(dataset_path(recipe, getattr(stage, key), out))
@@ -288,8 +331,18 @@ def stage_configs(stage: Stage, recipe: Recipe, out: Path, done: int | None = No
         if done < entry.steps:
             restart = entry.restart and done <= start  # not begun yet (an interrupted restart resumes as any entry)
             resume = not restart and (done > 0 or bool(configs))
-            configs.append(TrainConfig.from_dict({**base, "steps": entry.steps, "lr": entry.lr, "lr_end": entry.lr_end,
-                                                  "resume": resume, "restart": restart}))
+            configs.append(
+                TrainConfig.from_dict(
+                    {
+                        **base,
+                        "steps": entry.steps,
+                        "lr": entry.lr,
+                        "lr_end": entry.lr_end,
+                        "resume": resume,
+                        "restart": restart,
+                    }
+                )
+            )
             done = entry.steps
         start = entry.steps
     return configs

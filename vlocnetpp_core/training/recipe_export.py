@@ -25,8 +25,10 @@ def export_weights(recipe, out: Path) -> Path:
     weights = spec.get("weights", "best")
     source = out / spec["stage"] / weights
     if not source.with_suffix(".safetensors").is_file():  # best: no validation of the run scored (every score NaN)
-        raise UserError(f"{recipe.path}: export weights '{weights}': {source.with_suffix('.safetensors')} was not written "
-                        f"by stage {spec['stage']}")
+        raise UserError(
+            f"{recipe.path}: export weights '{weights}': {source.with_suffix('.safetensors')} was not written "
+            f"by stage {spec['stage']}"
+        )
     dtype = getattr(torch, str(spec.get("dtype", "float16")))  # one of recipe.EXPORT_DTYPES
     model, meta = load_checkpoint(source)
     calibration = meta.get("calibration") or {}
@@ -35,12 +37,20 @@ def export_weights(recipe, out: Path) -> Path:
     target = Path(spec["to"])
     if not target.is_absolute():
         target = Path.cwd() / target
-    path = save_checkpoint(target, model, {"training": meta["training"], "calibration": calibration, "intrinsics": meta["intrinsics"]},
-                           dtype=dtype)
+    path = save_checkpoint(
+        target,
+        model,
+        {"training": meta["training"], "calibration": calibration, "intrinsics": meta["intrinsics"]},
+        dtype=dtype,
+    )
     if spec.get("reference"):
         names = spec["reference"]  # a list of dataset names (load_recipe)
         reference = ReferenceSet.concat([open_reference(dataset_path(recipe, name, out)) for name in names])
-        reference.source = f"recipe {recipe.path.name}, " + "; ".join(f"dataset '{n}' ({recipe.datasets[n]})" for n in names) + ", train split"
+        reference.source = (
+            f"recipe {recipe.path.name}, "
+            + "; ".join(f"dataset '{n}' ({recipe.datasets[n]})" for n in names)
+            + ", train split"
+        )
         reference.save(reference_of(path))
     return path
 

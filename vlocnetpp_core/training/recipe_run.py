@@ -90,17 +90,35 @@ def recipe_jobs(recipe: Recipe, out: Path, python: str = sys.executable) -> list
             continue
         args = synth_args(spec.get("synth"), f"{recipe.path}: dataset '{name}'")
         frames = (args["loops"] + args["test_loops"]) * args["frames_per_loop"]
-        renders.append((first_use.get(name, len(recipe.stages)), -frames, Job(
-            f"dataset {name}", 1, lambda target=target, args=args: [] if target.is_dir() else [synth_command(target, args, python)],
-            out / "data" / f"{name}.log", what=f"rendering {frames} frames into {target}")))
+        renders.append(
+            (
+                first_use.get(name, len(recipe.stages)),
+                -frames,
+                Job(
+                    f"dataset {name}",
+                    1,
+                    lambda target=target, args=args: [] if target.is_dir() else [synth_command(target, args, python)],
+                    out / "data" / f"{name}.log",
+                    what=f"rendering {frames} frames into {target}",
+                ),
+            )
+        )
     jobs = [job for *_, job in sorted(renders, key=lambda r: r[:2])]
     rendered = {job.name for job in jobs}
     for stage in recipe.stages:
         inputs = set(stage.init) | ({stage.continues} if stage.continues else set())
         inputs |= {f"dataset {name}" for name in stage_datasets(stage)} & rendered
         threads = stage_threads(stage)
-        jobs.append(Job(stage.name, threads, lambda stage=stage: _stage_commands(stage, recipe, out, python), out / f"{stage.name}.log",
-                        inputs, f"{stage.stage} to step {stage.steps} on {threads} thread{'s' * (threads > 1)}"))
+        jobs.append(
+            Job(
+                stage.name,
+                threads,
+                lambda stage=stage: _stage_commands(stage, recipe, out, python),
+                out / f"{stage.name}.log",
+                inputs,
+                f"{stage.stage} to step {stage.steps} on {threads} thread{'s' * (threads > 1)}",
+            )
+        )
     return jobs
 
 
@@ -181,14 +199,18 @@ def run_jobs(jobs: list[Job], out: Path, log, cores: int) -> None:
                     record_time(out, run.job.name, time.monotonic() - run.start, log)
                 else:
                     failed.append(run.job)
-                    log(f"{run.job.name} failed (exit {run.proc.returncode}); nothing else starts"
-                        + (f", waiting for {', '.join(r.job.name for r in running)}" if running else ""))
+                    log(
+                        f"{run.job.name} failed (exit {run.proc.returncode}); nothing else starts"
+                        + (f", waiting for {', '.join(r.job.name for r in running)}" if running else "")
+                    )
     except BaseException:  # Ctrl-C or SIGTERM (sigterm_as_interrupt): no job outlives the recipe
         _interrupt(running, out, log)
         raise
     if failed:
-        raise UserError("; ".join(f"{job.name} failed: {_last_line(job.log_path)} (log {job.log_path})" for job in failed)
-                        + " (run the recipe again to resume)")
+        raise UserError(
+            "; ".join(f"{job.name} failed: {_last_line(job.log_path)} (log {job.log_path})" for job in failed)
+            + " (run the recipe again to resume)"
+        )
 
 
 def _interrupt(running: list[_Running], out: Path, log, grace_s: float = 60.0) -> None:
@@ -212,7 +234,11 @@ def _interrupt(running: list[_Running], out: Path, log, grace_s: float = 60.0) -
 
 
 def _last_line(path: Path) -> str:
-    lines = [line.strip() for line in path.read_text(errors="replace").splitlines() if line.strip()] if path.is_file() else []
+    lines = (
+        [line.strip() for line in path.read_text(errors="replace").splitlines() if line.strip()]
+        if path.is_file()
+        else []
+    )
     return lines[-1] if lines else "no output"
 
 

@@ -32,7 +32,7 @@ class EpochSampler(torch.utils.data.Sampler):
         if len(perm) < self.batch_size:  # tiny datasets: repeat to fill one batch
             perm = (perm * math.ceil(self.batch_size / max(1, len(perm))))[: self.batch_size]
         for b in range(self.skip_batches, self.batches_per_epoch):
-            batch = perm[b * self.batch_size:(b + 1) * self.batch_size]
+            batch = perm[b * self.batch_size : (b + 1) * self.batch_size]
             for k in range(self.rank * self.per_rank, (self.rank + 1) * self.per_rank):
                 yield batch[k], _sample_seed(self.seed, self.epoch, b * self.batch_size + k)
 
@@ -44,8 +44,15 @@ def _sample_seed(*parts: int) -> int:
     return int.from_bytes(hashlib.blake2b(repr(parts).encode(), digest_size=8).digest(), "little") >> 2
 
 
-def training_clips(index, clip_len: int, transform, strides: tuple[int, ...] = (1,), seg: bool = True,
-                   cache_size: tuple[int, int] | None = None, log=print) -> torch.utils.data.ConcatDataset:
+def training_clips(
+    index,
+    clip_len: int,
+    transform,
+    strides: tuple[int, ...] = (1,),
+    seg: bool = True,
+    cache_size: tuple[int, int] | None = None,
+    log=print,
+) -> torch.utils.data.ConcatDataset:
     """The ``ClipDataset`` of ``index`` at each frame stride, pooled (item ``i`` as in ``ClipDataset``);
     depth and labels are decoded only when the run trains segmentation (``seg``).
 
@@ -61,13 +68,22 @@ def training_clips(index, clip_len: int, transform, strides: tuple[int, ...] = (
     from vlocnetpp_core.data.frame_cache import MAX_MEMORY_SHARE, FrameCache, available_memory, cache_bytes
 
     if cache_size is not None:
-        need, free = cache_bytes(len(index), cache_size, seg and index.has_depth, seg and index.has_labels), available_memory()
+        need, free = (
+            cache_bytes(len(index), cache_size, seg and index.has_depth, seg and index.has_labels),
+            available_memory(),
+        )
         if need <= MAX_MEMORY_SHARE * free:
-            log(f"decoding {len(index)} training frames into memory at {cache_size[0]}x{cache_size[1]} ({need / 2**20:.0f} MiB)")
+            log(
+                f"decoding {len(index)} training frames into memory at {cache_size[0]}x{cache_size[1]} ({need / 2**20:.0f} MiB)"
+            )
             index = FrameCache(index, cache_size, depth=seg, labels=seg)
         else:
-            log(f"training frames decoded per clip: caching them would take {need / 2**30:.1f} GiB of {free / 2**30:.1f} GiB available")
-    return torch.utils.data.ConcatDataset([ClipDataset(index, clip_len, transform, stride=s, depth=seg, labels=seg) for s in strides])
+            log(
+                f"training frames decoded per clip: caching them would take {need / 2**30:.1f} GiB of {free / 2**30:.1f} GiB available"
+            )
+    return torch.utils.data.ConcatDataset(
+        [ClipDataset(index, clip_len, transform, stride=s, depth=seg, labels=seg) for s in strides]
+    )
 
 
 class SeededClips(torch.utils.data.Dataset):
@@ -94,5 +110,5 @@ def split_validation(index):
         return index, None
     last = index.sequences[-1]
     train = replace(index, records=index.records[: last.start], sequences=index.sequences[:-1])
-    val = replace(index, records=index.records[last.start:], sequences=[range(0, len(last))])
+    val = replace(index, records=index.records[last.start :], sequences=[range(0, len(last))])
     return train, val

@@ -31,16 +31,20 @@ def load_inits(model, criterion, paths: list[str], stage: str, log) -> list[dict
         src_stage = meta.get("training", {}).get("stage")
         keep = init_tensors(init_rule(stage, src_stage, len(paths)), src_stage, tensors, own)
         if not keep:
-            raise UserError(f"--init {path}: none of its {len(tensors)} tensors matches a tensor of this {stage} network "
-                            f"(checkpoint stage {src_stage or 'unknown'}); a checkpoint of another network or task?")
+            raise UserError(
+                f"--init {path}: none of its {len(tensors)} tensors matches a tensor of this {stage} network "
+                f"(checkpoint stage {src_stage or 'unknown'}); a checkpoint of another network or task?"
+            )
         picked.append((path, src_stage, keep))
     sources, loaded = [], {}
     for i, (path, src_stage, keep) in enumerate(picked):
-        later = set().union(*(k for _, _, k in picked[i + 1:]))
+        later = set().union(*(k for _, _, k in picked[i + 1 :]))
         keep = {k: v for k, v in keep.items() if k not in later}
         bad = [k for k, v in keep.items() if v.shape != own[k].shape]
         if bad:
-            raise UserError(f"{path}: {len(bad)} tensors do not match this model config (e.g. {bad[0]}); was it trained with another --config?")
+            raise UserError(
+                f"{path}: {len(bad)} tensors do not match this model config (e.g. {bad[0]}); was it trained with another --config?"
+            )
         model.load_state_dict({k: v.to(own[k].dtype) for k, v in keep.items()}, strict=False)
         loaded.update(keep)
         sources.append({"path": str(path), "stage": src_stage})

@@ -45,7 +45,9 @@ def _unflatten_optimizer(tensors: dict[str, torch.Tensor], meta: dict) -> dict:
     return {"state": state, "param_groups": meta["param_groups"]}
 
 
-def save_train_state(run_dir: Path, *, step: int, optimizer: torch.optim.Optimizer, criterion: torch.nn.Module, extra: dict) -> None:
+def save_train_state(
+    run_dir: Path, *, step: int, optimizer: torch.optim.Optimizer, criterion: torch.nn.Module, extra: dict
+) -> None:
     """Write the resumable state of a run at ``step`` (after the optimiser update of that step)."""
     run_dir = Path(run_dir)
     tensors, opt_meta = _flatten_optimizer(optimizer.state_dict())
@@ -66,7 +68,9 @@ def save_train_state(run_dir: Path, *, step: int, optimizer: torch.optim.Optimiz
     os.replace(tmp_js, run_dir / f"{STATE_NAME}.json")
 
 
-def load_train_state(run_dir: Path, *, optimizer: torch.optim.Optimizer | None, criterion: torch.nn.Module | None) -> dict:
+def load_train_state(
+    run_dir: Path, *, optimizer: torch.optim.Optimizer | None, criterion: torch.nn.Module | None
+) -> dict:
     """Restore optimiser, loss weights and RNG from ``run_dir``; returns the JSON metadata (with ``step``)."""
     run_dir = Path(run_dir)
     st, js = run_dir / f"{STATE_NAME}.safetensors", run_dir / f"{STATE_NAME}.json"
@@ -80,7 +84,7 @@ def load_train_state(run_dir: Path, *, optimizer: torch.optim.Optimizer | None, 
     if optimizer is not None:
         optimizer.load_state_dict(_unflatten_optimizer(tensors, meta["optimizer"]))
     if criterion is not None:
-        crit = {k[len("criterion."):]: v for k, v in tensors.items() if k.startswith("criterion.")}
+        crit = {k[len("criterion.") :]: v for k, v in tensors.items() if k.startswith("criterion.")}
         criterion.load_state_dict(crit)
     torch.set_rng_state(tensors["rng.torch"])
     random.setstate(_tuplify(meta["rng"]["python"]))
@@ -93,7 +97,7 @@ def load_criterion_weights(run_dir: Path) -> dict[str, torch.Tensor]:
     st = Path(run_dir) / f"{STATE_NAME}.safetensors"
     if not st.is_file():
         return {}
-    return {k[len("criterion."):]: v for k, v in load_file(str(st)).items() if k.startswith("criterion.")}
+    return {k[len("criterion.") :]: v for k, v in load_file(str(st)).items() if k.startswith("criterion.")}
 
 
 def _jsonable(obj):

@@ -47,7 +47,11 @@ class Trainer:
         self.phase = LearningRatePhase(0, self.lr, c.lr_end, self.total)
         if c.resume or c.restart:
             self._resume(fresh=c.restart)
-        self.net = torch.nn.parallel.DistributedDataParallel(self.model, find_unused_parameters=True) if self.distributed else self.model
+        self.net = (
+            torch.nn.parallel.DistributedDataParallel(self.model, find_unused_parameters=True)
+            if self.distributed
+            else self.model
+        )
         if self.is_main:  # once every input was read and checked: a refused run leaves no folder behind
             make_dirs(self.out, f"--out {self.out}")
 
@@ -71,8 +75,14 @@ class Trainer:
                 torch.cuda.set_device(self.device)
             dist.init_process_group("nccl" if self.device.type == "cuda" else "gloo")
         use_threads(c.threads)
-        if c.bf16 and self.device.type == "cpu" and not (torch.cpu._is_avx512_bf16_supported() or torch.cpu._is_amx_tile_supported()):
-            self.log("--bf16: this CPU has neither AVX-512 BF16 nor AMX, so bfloat16 autocast runs slower here than float32")
+        if (
+            c.bf16
+            and self.device.type == "cpu"
+            and not (torch.cpu._is_avx512_bf16_supported() or torch.cpu._is_amx_tile_supported())
+        ):
+            self.log(
+                "--bf16: this CPU has neither AVX-512 BF16 nor AMX, so bfloat16 autocast runs slower here than float32"
+            )
         if c.batch_size % self.world:
             raise UserError(f"--batch-size {c.batch_size} must be divisible by the number of processes ({self.world})")
         self.out = Path(c.out)
@@ -87,10 +97,14 @@ class Trainer:
         config = load_model_config(c.config)
         if config.semantic_fusion and not builds_semantic_fusion(c.stage, c.steps):
             config = dataclasses.replace(config, semantic_fusion=False)  # mtl training starts it as an identity
-            self.log(f"{c.stage}{' with no steps' if c.stage == 'mtl' else ''}: the network is built without the Res4c "
-                     "semantic fusion, which only mtl training learns")
+            self.log(
+                f"{c.stage}{' with no steps' if c.stage == 'mtl' else ''}: the network is built without the Res4c "
+                "semantic fusion, which only mtl training learns"
+            )
         self.model_config, self.size = config, tuple(config.input_size)
-        self.tasks = stage_tasks(c.stage, config.tasks)  # mtl without the semantic stream: loc + vo (train.run refuses stl-seg)
+        self.tasks = stage_tasks(
+            c.stage, config.tasks
+        )  # mtl without the semantic stream: loc + vo (train.run refuses stl-seg)
         self.train_index = open_dataset(c.data, c.format, "train", c.intrinsics)
         if c.val_data:
             self.val_index = open_dataset(c.val_data, c.format, c.val_split, c.intrinsics)
@@ -98,16 +112,24 @@ class Trainer:
             self.train_index, self.val_index = split_validation(self.train_index)
         self.crop_scale = c.crop
         transform = make_transform(True, self.size, scale=(1.0, self.crop_scale), flip=stage_spec(c.stage).mirrors)
-        cache_size = (round(self.size[0] * self.crop_scale), round(self.size[1] * self.crop_scale)) if c.steps != 0 else None
+        cache_size = (
+            (round(self.size[0] * self.crop_scale), round(self.size[1] * self.crop_scale)) if c.steps != 0 else None
+        )
         seg = "seg" in self.tasks  # depth and labels are decoded only for a run that trains segmentation
-        self.train_clips = training_clips(self.train_index, c.clip_len, transform, c.frame_strides, seg, cache_size, self.log)
+        self.train_clips = training_clips(
+            self.train_index, c.clip_len, transform, c.frame_strides, seg, cache_size, self.log
+        )
         if len(self.train_clips) == 0:
             raise UserError(f"{c.data}: no training clips of {c.clip_len} frames")
         self.val_clips = None
         if self.val_index is not None:
             # at every training stride: at one spacing a constant odometry step can score well (docs/training.md)
-            self.val_clips = [ClipDataset(self.val_index, c.clip_len, make_transform(False, self.size), stride=s, depth=seg, labels=seg)
-                              for s in sorted(c.frame_strides)]
+            self.val_clips = [
+                ClipDataset(
+                    self.val_index, c.clip_len, make_transform(False, self.size), stride=s, depth=seg, labels=seg
+                )
+                for s in sorted(c.frame_strides)
+            ]
         self.sampler = EpochSampler(len(self.train_clips), c.batch_size, c.seed, self.rank, self.world)
         epochs = 30.0 if c.epochs is None else c.epochs
         self.total = c.steps if c.steps is not None else int(math.ceil(epochs * self.sampler.batches_per_epoch))
@@ -144,7 +166,9 @@ class Trainer:
             frozen.add("trunk")
         missing = [part for part in frozen if getattr(self.model, part) is None]
         if missing:
-            raise UserError(f"--freeze {','.join(missing)}: this network (--config {self.config.config}) has no such part")
+            raise UserError(
+                f"--freeze {','.join(missing)}: this network (--config {self.config.config}) has no such part"
+            )
         return tuple(sorted(frozen))
 
     def _resume(self, fresh: bool = False) -> None:
@@ -155,11 +179,15 @@ class Trainer:
         from vlocnetpp_core.training.train_state import load_train_state
 
         c, out = self.config, self.out
-        meta = load_train_state(out, optimizer=None if fresh else self.optimizer, criterion=None if fresh else self.criterion)
+        meta = load_train_state(
+            out, optimizer=None if fresh else self.optimizer, criterion=None if fresh else self.criterion
+        )
         saved_strides = tuple(meta.get("config", meta.get("args", {})).get("frame_strides") or c.frame_strides)
         if saved_strides != c.frame_strides:  # the saved (epoch, offset) indexes that clip list
-            raise UserError(f"{out}: the run trained with --frame-strides {','.join(map(str, saved_strides))}; "
-                            f"resume it with the same (got {','.join(map(str, c.frame_strides))})")
+            raise UserError(
+                f"{out}: the run trained with --frame-strides {','.join(map(str, saved_strides))}; "
+                f"resume it with the same (got {','.join(map(str, c.frame_strides))})"
+            )
         tensors, _ = read_checkpoint_tensors(out / "last.safetensors")
         self.model.load_state_dict({k: v.to(self.device) for k, v in tensors.items()})
         self.step, self.reference = int(meta["step"]), meta.get("best_reference")
@@ -180,18 +208,26 @@ class Trainer:
         if self.is_main and not c.no_progress:
             from tqdm import tqdm
 
-            progress = tqdm(total=self.total, initial=self.step, desc=f"train {c.stage}", unit="step", dynamic_ncols=True)
-        self.log(f"{c.stage}: {len(self.train_clips)} clips (frame strides {','.join(map(str, c.frame_strides))}), "
-                 f"{self.sampler.batches_per_epoch} steps/epoch, {self.total} steps, lr {self.lr:g}, batch {c.batch_size}, device {self.device}")
+            progress = tqdm(
+                total=self.total, initial=self.step, desc=f"train {c.stage}", unit="step", dynamic_ncols=True
+            )
+        self.log(
+            f"{c.stage}: {len(self.train_clips)} clips (frame strides {','.join(map(str, c.frame_strides))}), "
+            f"{self.sampler.batches_per_epoch} steps/epoch, {self.total} steps, lr {self.lr:g}, batch {c.batch_size}, device {self.device}"
+        )
         self.last_save = time.monotonic()
         try:
             self._loop(progress)
         except KeyboardInterrupt:  # Ctrl-C or SIGTERM: keep the steps since the last save
             if self.is_main and self.step > 0:
                 self.save(False)
-                self.log(f"interrupted at step {self.step}: saved ({self.out / 'last.safetensors'}); --resume continues from there")
+                self.log(
+                    f"interrupted at step {self.step}: saved ({self.out / 'last.safetensors'}); --resume continues from there"
+                )
             raise
-        if self.is_main and self.total == 0:  # nothing to train: write the initialised network (e.g. mtl assembled from its stages)
+        if (
+            self.is_main and self.total == 0
+        ):  # nothing to train: write the initialised network (e.g. mtl assembled from its stages)
             self.save(True)
         if progress is not None:
             progress.close()
@@ -207,14 +243,22 @@ class Trainer:
             while self.step < self.total:
                 epoch, offset = divmod(self.step, self.sampler.batches_per_epoch)
                 self.sampler.set_position(epoch, offset)
-                loader = torch.utils.data.DataLoader(SeededClips(self.train_clips), batch_size=self.sampler.per_rank, sampler=self.sampler,
-                                                     num_workers=c.workers, persistent_workers=False, drop_last=True)
+                loader = torch.utils.data.DataLoader(
+                    SeededClips(self.train_clips),
+                    batch_size=self.sampler.per_rank,
+                    sampler=self.sampler,
+                    num_workers=c.workers,
+                    persistent_workers=False,
+                    drop_last=True,
+                )
                 for batch in loader:
                     rec = self.train_step(batch, epoch)
                     logf.write(json.dumps(rec) + "\n")
                     if progress is not None:
                         progress.update(1)
-                        shown = {k: f"{v:.3g}" for k, v in rec.items() if k not in ("step", "epoch", "lr", "clips_per_s")}
+                        shown = {
+                            k: f"{v:.3g}" for k, v in rec.items() if k not in ("step", "epoch", "lr", "clips_per_s")
+                        }
                         progress.set_postfix(shown | {"clips/s": f"{rec['clips_per_s']:.1f}"})
                     self._validate_or_save(rec["loss"], logf)
                     logf.flush()
@@ -237,15 +281,23 @@ class Trainer:
             group["lr"] = self.phase.at(self.step)
         self.optimizer.step()
         self.step += 1
-        return {"step": self.step, "epoch": epoch, "lr": self.optimizer.param_groups[0]["lr"], "loss": float(loss.detach()),
-                **{k: float(v) for k, v in parts.items()}, "clips_per_s": self.config.batch_size / (time.perf_counter() - t0)}
+        return {
+            "step": self.step,
+            "epoch": epoch,
+            "lr": self.optimizer.param_groups[0]["lr"],
+            "loss": float(loss.detach()),
+            **{k: float(v) for k, v in parts.items()},
+            "clips_per_s": self.config.batch_size / (time.perf_counter() - t0),
+        }
 
     def _validate_or_save(self, loss: float, logf) -> None:
         """At a validation step: validate (rank 0), rank by :func:`selection_score` and save; else save when due."""
         if (self.config.val_every and self.step % self.config.val_every == 0) or self.step == self.total:
             metrics = None
             if self.is_main and self.val_clips is not None:
-                metrics, self.calibration = validate(self.model, self.criterion, self.val_clips, self.config.stage, self.device)
+                metrics, self.calibration = validate(
+                    self.model, self.criterion, self.val_clips, self.config.stage, self.device
+                )
                 logf.write(json.dumps({"step": self.step, "validation": metrics}) + "\n")
                 self.log(f"step {self.step}: validation {json.dumps(metrics)}")
             if metrics:
@@ -267,25 +319,49 @@ class Trainer:
         from vlocnetpp_core.inference.checkpoint import save_checkpoint
         from vlocnetpp_core.training.train_state import save_train_state
 
-        meta = {"training": {**self.summary(), "step": self.step}, "intrinsics": self.train_index.intrinsics.resized(*self.size).to_dict()}
+        meta = {
+            "training": {**self.summary(), "step": self.step},
+            "intrinsics": self.train_index.intrinsics.resized(*self.size).to_dict(),
+        }
         if self.calibration:
             meta["calibration"] = self.calibration
         save_checkpoint(self.out / "last", self.model, meta)
         if is_best:
             save_checkpoint(self.out / "best", self.model, meta)
-        save_train_state(self.out, step=self.step, optimizer=self.optimizer, criterion=self.criterion,
-                         extra={"best": self.best, "best_reference": self.reference, "lr_phase": self.phase.to_dict(),
-                                "config": self.config.to_dict()})
+        save_train_state(
+            self.out,
+            step=self.step,
+            optimizer=self.optimizer,
+            criterion=self.criterion,
+            extra={
+                "best": self.best,
+                "best_reference": self.reference,
+                "lr_phase": self.phase.to_dict(),
+                "config": self.config.to_dict(),
+            },
+        )
 
     def summary(self) -> dict:
         """The ``training`` entry of the checkpoint sidecars."""
         c = self.config
         return {
-            "stage": c.stage, "data": str(c.data), "train_frames": len(self.train_index), "train_sequences": len(self.train_index.sequences),
-            "train_clips": len(self.train_clips), "frame_strides": list(c.frame_strides),
-            "val_frames": len(self.val_index) if self.val_index is not None else 0, "clip_len": c.clip_len,
-            "batch_size": c.batch_size, "lr": self.lr, "lr_end": c.lr_end, "s_q_init": c.s_q_init, "crop_scale": self.crop_scale, "world_size": self.world,
-            "init": self.sources, "frozen": list(self.frozen), "seed": c.seed,
+            "stage": c.stage,
+            "data": str(c.data),
+            "train_frames": len(self.train_index),
+            "train_sequences": len(self.train_index.sequences),
+            "train_clips": len(self.train_clips),
+            "frame_strides": list(c.frame_strides),
+            "val_frames": len(self.val_index) if self.val_index is not None else 0,
+            "clip_len": c.clip_len,
+            "batch_size": c.batch_size,
+            "lr": self.lr,
+            "lr_end": c.lr_end,
+            "s_q_init": c.s_q_init,
+            "crop_scale": self.crop_scale,
+            "world_size": self.world,
+            "init": self.sources,
+            "frozen": list(self.frozen),
+            "seed": c.seed,
         }
 
 
@@ -338,7 +414,9 @@ def validate(model, criterion, clips: list, stage: str, device) -> tuple[dict, d
                 if o.xyz is not None:
                     pose_err.append(_pose_residual(o.xyz, o.quat, batch["t"][:, i], batch["q"][:, i], geometry))
                 if i > 0 and o.rel_xyz is not None:
-                    odo_err.append(_pose_residual(o.rel_xyz, o.rel_quat, batch["rel_t"][:, i], batch["rel_q"][:, i], geometry))
+                    odo_err.append(
+                        _pose_residual(o.rel_xyz, o.rel_quat, batch["rel_t"][:, i], batch["rel_q"][:, i], geometry)
+                    )
     model.train()
     metrics = {key: v / max(n, 1) for key, v in sums.items()}
     calib = {
