@@ -28,8 +28,9 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-# 0 trains, 11 validates the shipped model; 101, 7, 23, 42 ranked the recipe (docs/results.md); 5, 202 the tests' visits;
-# the refinement's verdict of 2026-12-20 (docs/results.md): never drawn again, so the next verdict is on other visits
+# 0 trains, 11 validates the shipped model; 101, 7, 23, 42 ranked the recipe (docs/results.md); 5, 202 the tests'
+# visits; the refinement's verdict of 2026-12-20 (docs/results.md): never drawn again, so the next verdict is on other
+# visits
 SPENT = {0, 5, 7, 11, 23, 42, 101, 202, 307008, 445811, 936886, 733135, 107868, 370004, 177925, 600629}
 COLUMNS = [
     ("t [m]", "pose", "median_translation_m", 1, "{:.3f}"),
@@ -69,7 +70,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     spent = sorted(SPENT & set(args.seed))
     if spent:
         print(
-            f"note: seeds {spent} were used before (SPENT): not fresh; fine to re-run a recorded verdict, not for a new one",
+            f"note: seeds {spent} were used before (SPENT): not fresh; "
+            "fine to re-run a recorded verdict, not for a new one",
             file=sys.stderr,
         )
     return args
@@ -136,7 +138,8 @@ def score(args: argparse.Namespace, seed: int, label: str, checkpoint: str) -> d
 
 
 def rows_of(label: str, report: dict, first: bool) -> dict[str, dict]:
-    """Row name -> its ``overall``-shaped metrics: the network, refined, and (for the first checkpoint) the baselines."""
+    """Row name -> its ``overall``-shaped metrics: the network, refined, and (for the first checkpoint) the
+    baselines."""
     o = report["overall"]
     rows = {f"{label} (network)": o}
     if "pose_refined" in o:
@@ -192,7 +195,8 @@ def main(argv: list[str] | None = None) -> int:
         ("shipped", "models/vlocnetpp_lite.safetensors")
     ]
     print(
-        f"visit seeds: {' '.join(map(str, seeds))} ({args.test_loops} test loops of {args.frames_per_loop} frames each)",
+        f"visit seeds: {' '.join(map(str, seeds))} "
+        f"({args.test_loops} test loops of {args.frames_per_loop} frames each)",
         flush=True,
     )
     Path(args.out).mkdir(parents=True, exist_ok=True)
@@ -205,7 +209,10 @@ def main(argv: list[str] | None = None) -> int:
 
     with ThreadPoolExecutor(max(1, args.jobs)) as pool:
         per_seed = dict(zip(seeds, pool.map(rows_of_seed, seeds), strict=True))
-    text = f"visit seeds {' '.join(map(str, seeds))}; map {args.map or 'none'}, refine every {args.refine_every}\n\n{table(per_seed)}\n"
+    text = (
+        f"visit seeds {' '.join(map(str, seeds))}; map {args.map or 'none'}, "
+        f"refine every {args.refine_every}\n\n{table(per_seed)}\n"
+    )
     (Path(args.out) / "table.md").write_text(text)
     print(text)
     return 0

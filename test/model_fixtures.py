@@ -15,7 +15,8 @@ from vlocnetpp_core.model import ModelConfig, load_model_config
 
 @contextlib.contextmanager
 def single_thread() -> Iterator[None]:
-    """Run tiny-tensor loops on one thread: on a shared 2-core machine two spinning threads slow them down many times."""
+    """Run tiny-tensor loops on one thread: on a shared 2-core machine two spinning threads slow them down many
+    times."""
     before = torch.get_num_threads()
     torch.set_num_threads(1)
     try:

@@ -167,7 +167,8 @@ def params_file(install: Path, folder: Path, **overrides) -> Path:
 
 
 class InstalledNode:
-    """``lib/vlocnetpp_ros/localizer --ros-args --params-file FILE [ARGS]`` from the install tree, on ROS domain ``domain``."""
+    """``lib/vlocnetpp_ros/localizer --ros-args --params-file FILE [ARGS]`` from the install tree, on ROS domain
+    ``domain``."""
 
     def __init__(
         self,

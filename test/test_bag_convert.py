@@ -1,4 +1,5 @@
-"""`vlocnetpp convert`: datasets written to disk, converted to MCAP, read back with rosbags and with the plain mcap reader."""
+"""`vlocnetpp convert`: datasets written to disk, converted to MCAP, read back with rosbags and with the plain mcap
+reader."""
 
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""`vlocnetpp replay` (in process and through the real node over DDS) and `vlocnetpp evaluate-bag` against `vlocnetpp evaluate`."""
+"""`vlocnetpp replay` (in process and through the real node over DDS) and `vlocnetpp evaluate-bag` against `vlocnetpp
+evaluate`."""
 
 from __future__ import annotations
 
@@ -62,7 +63,8 @@ def setup(tmp_path_factory):
 
 
 def _outputs(path: Path) -> dict[tuple[str, int], np.ndarray]:
-    """(topic, stamp) -> the numbers of every /vlocnet/* message (pose, pose and covariance, odometry pose, mask pixels)."""
+    """(topic, stamp) -> the numbers of every /vlocnet/* message (pose, pose and covariance, odometry pose, mask
+    pixels)."""
     out = {}
     with BagReader(path) as reader:
         for topic, _, msg in reader.messages(OUTPUTS):

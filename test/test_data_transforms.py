@@ -92,7 +92,8 @@ def test_clip_frames_share_the_random_draw():
 
 
 def test_training_without_geometric_augmentation_sees_the_test_geometry():
-    """``scale=(1, 1)`` (the pose stages' default): the whole image at the input size, as at test time; only photometric jitter."""
+    """``scale=(1, 1)`` (the pose stages' default): the whole image at the input size, as at test time; only photometric
+    jitter."""
     train, test = make_transform(True, (96, 64), scale=(1.0, 1.0)), make_transform(False, (96, 64))
     reference = test([_marker_frame()], np.random.default_rng(0))[0]
     images = []

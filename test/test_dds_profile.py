@@ -35,8 +35,9 @@ def test_without_a_user_profile_readers_are_dynamic_and_the_environment_is_resto
 
 def test_the_users_files_are_merged_and_their_values_kept(tmp_path: Path):
     (tmp_path / dds_profile.CWD_FILE).write_text(
-        '<profiles xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles"><data_reader profile_name="/camera/image" '
-        'is_default_profile="true"><historyMemoryPolicy>PREALLOCATED_WITH_REALLOC</historyMemoryPolicy></data_reader></profiles>'
+        '<profiles xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">'
+        '<data_reader profile_name="/camera/image" is_default_profile="true">'
+        "<historyMemoryPolicy>PREALLOCATED_WITH_REALLOC</historyMemoryPolicy></data_reader></profiles>"
     )
     env = {dds_profile.PROFILES_ENV: str(LARGE_DATA), "RMW_FASTRTPS_PUBLICATION_MODE": "ASYNCHRONOUS"}
     applied = dds_profile.apply(env, tmp_path)

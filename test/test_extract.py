@@ -1,4 +1,5 @@
-"""`vlocnetpp extract`: robot bags (MCAP from `convert --robot-frame`, hand-made sqlite3) back to DeepLoc-layout datasets."""
+"""`vlocnetpp extract`: robot bags (MCAP from `convert --robot-frame`, hand-made sqlite3) back to DeepLoc-layout
+datasets."""
 
 from __future__ import annotations
 
@@ -23,7 +24,8 @@ from vlocnetpp_core.data import ClipDataset, open_dataset
 from vlocnetpp_core.data.check import dataset_info
 
 LOOP_A, LOOP_B = list(range(1, 7)), list(range(101, 105))  # two loops -> two sequences (10 s apart in the bag)
-# T_base_link,camera: the camera 0.3 m ahead, 0.1 m right and 0.8 m up, with the optical rotation (z forward = base x, x right = -base y)
+# T_base_link,camera: the camera 0.3 m ahead, 0.1 m right and 0.8 m up, with the optical rotation (z forward = base x, x
+# right = -base y)
 EXT = "0.3,-0.1,0.8,0.5,-0.5,0.5,-0.5"
 
 
@@ -162,8 +164,8 @@ def _truth(s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _write_sqlite_bag(path: Path, image_s: np.ndarray, pose_s: np.ndarray, encoding: str = "mono8") -> None:
-    """A rosbag2 folder (sqlite3 storage): mono8 images (value 10 k) and camera info at ``image_s``, Odometry on /odom at
-    ``pose_s``, and 16UC1 depth (1000 + 100 k mm) 5 ms after the even images and 30 ms after the odd ones."""
+    """A rosbag2 folder (sqlite3 storage): mono8 images (value 10 k) and camera info at ``image_s``, Odometry on /odom
+    at ``pose_s``, and 16UC1 depth (1000 + 100 k mm) 5 ms after the even images and 30 ms after the odd ones."""
     ts = messages.TYPESTORE
     writer = Writer(path, version=9, storage_plugin=StoragePlugin.SQLITE3)
     writer.open()
@@ -265,7 +267,8 @@ def test_pose_topic_at_another_rate_is_interpolated(tmp_path, capsys):
 
 
 def test_tf_chain_goes_up_and_down_the_tree_and_interpolates():
-    """gps -> camera through map: inverse(map->gps, static) * map->odom (2 Hz) * odom->base_link (10 Hz) * base_link->camera."""
+    """gps -> camera through map: inverse(map->gps, static) * map->odom (2 Hz) * odom->base_link (10 Hz) *
+    base_link->camera."""
 
     def motion(s, v, axis, rate):
         s = np.asarray(s, dtype=np.float64)
@@ -399,7 +402,8 @@ def test_extract_loads_neither_the_localizer_nor_the_model():
     vlocnetpp_core.geometry, whose one implementation of the pose algebra runs in torch for numpy inputs too."""
     code = (
         "import sys; from vlocnetpp_core.cli import build_parser; build_parser('extract'); "
-        "print(sorted(m for m in ('vlocnetpp_core.inference.localizer', 'vlocnetpp_core.inference.checkpoint', 'vlocnetpp_core.model') if m in sys.modules))"
+        "print(sorted(m for m in ('vlocnetpp_core.inference.localizer', "
+        "'vlocnetpp_core.inference.checkpoint', 'vlocnetpp_core.model') if m in sys.modules))"
     )
     assert (
         subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip() == "[]"

@@ -1,4 +1,5 @@
-"""Camera -> base frame (vlocnetpp_core.camera.extrinsics, no ROS): poses against 4x4 matrices built with scipy, covariances."""
+"""Camera -> base frame (vlocnetpp_core.camera.extrinsics, no ROS): poses against 4x4 matrices built with scipy,
+covariances."""
 
 from __future__ import annotations
 

@@ -53,7 +53,8 @@ def test_localization_loss_known_values_in_se3_form():
     assert parts["q"].item() == pytest.approx(q_err)
     assert parts["x_rel"].item() == pytest.approx(0.0, abs=1e-6)  # a world-frame difference would give 1.41
     assert parts["q_rel"].item() == pytest.approx(0.0, abs=1e-6)
-    # s_x = 0, s_q = -3 (paper init), the consistency errors sharing the global weights: (L_x + L_x_rel) + (L_q + L_q_rel) e^3 - 3
+    # s_x = 0, s_q = -3 (paper init), the consistency errors sharing the global weights: (L_x + L_x_rel) + (L_q +
+    # L_q_rel) e^3 - 3
     assert loss.item() == pytest.approx(1.5 + q_err * math.exp(3) - 3, rel=1e-5)
     assert [n for n, _ in crit.named_parameters()] == ["s_x", "s_q"]
     # s_q_init = 0 (train --s-q-init 0): both rotation terms enter unweighted

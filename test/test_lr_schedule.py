@@ -1,4 +1,5 @@
-"""The learning-rate phases of `vlocnetpp train` (`--lr`, `--lr-end`): the cosine curve and how a resume continues it."""
+"""The learning-rate phases of `vlocnetpp train` (`--lr`, `--lr-end`): the cosine curve and how a resume continues
+it."""
 
 from __future__ import annotations
 

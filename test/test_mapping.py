@@ -171,7 +171,8 @@ def test_a_dataset_without_depth_is_triangulated_onto_the_surface(tmp_path):
     m = build_map([index], spacing_m=0.3, angle_deg=20.0, progress=False)
     assert m.num_points >= 100, m.num_points
     # every fixture view looks at the plane Z = PLANE_Z, 8 m ahead, from keyframes 0.3 m apart (a tenth of a pixel of
-    # keypoint error moves a point by ~0.3 m along the ray): measured |Z - PLANE_Z| median 0.06 m, 90th percentile 0.12 m
+    # keypoint error moves a point by ~0.3 m along the ray): measured |Z - PLANE_Z| median 0.06 m, 90th percentile
+    # 0.12 m
     off = np.abs(m.points[:, 2] - PLANE_Z)
     assert np.median(off) < 0.15 and np.percentile(off, 90) < 0.4, (np.median(off), np.percentile(off, 90))
 

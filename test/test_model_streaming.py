@@ -168,8 +168,9 @@ def test_single_task_stage_trains_only_its_streams():
 
 
 def test_bf16_autocast_keeps_the_pose_and_depth_heads_in_float32():
-    """train --bf16: under bfloat16 autocast the trunk and streams run in bfloat16 but the pose (and depth) heads in float32, so a
-    position 1000 m from the origin keeps centimetres (bfloat16 steps by 4 m there) and matches the float32 forward."""
+    """train --bf16: under bfloat16 autocast the trunk and streams run in bfloat16 but the pose (and depth) heads in
+    float32, so a position 1000 m from the origin keeps centimetres (bfloat16 steps by 4 m there) and matches the
+    float32 forward."""
     torch.manual_seed(0)
     net = VLocNetPP(lite(input_size=(W, H))).eval()
     rng = np.random.default_rng(0)

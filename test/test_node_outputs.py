@@ -43,7 +43,8 @@ def checkpoint(tmp_path_factory) -> Path:
 
 @pytest.fixture()
 def make_node(checkpoint: Path, monkeypatch):
-    """``make_node(**params) -> (LocalizerNode, Harness)`` once the node's pose outputs are advertised; torn down after the test."""
+    """``make_node(**params) -> (LocalizerNode, Harness)`` once the node's pose outputs are advertised; torn down after
+    the test."""
     monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     with localizer_nodes(checkpoint, DOMAIN) as make:
 

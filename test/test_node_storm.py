@@ -161,9 +161,9 @@ class _Storm:
             )
 
     def answered(self, same: bool = True, timeout: float = 60.0) -> tuple[float, PoseStamped, PoseStamped]:
-        """Good frames after a stamp gap (each localised from the image alone), sent until both nodes answered one of them
-        (``same``: the same one; a best-effort frame may be lost on the way to either): the stamp and both nodes' poses
-        of the last answered (fails when a node died or did not answer)."""
+        """Good frames after a stamp gap (each localised from the image alone), sent until both nodes answered one of
+        them (``same``: the same one; a best-effort frame may be lost on the way to either): the stamp and both nodes'
+        poses of the last answered (fails when a node died or did not answer)."""
 
         def find(poses, stamps):
             return next(
@@ -329,7 +329,8 @@ def test_storms_from_any_publisher_leave_memory_flat_and_the_nodes_answering(
                 if key.startswith(("rejected.", "ignored.")):
                     counted[key] += int(value)
         # a class with a key is counted under it when the node received it (best effort: not every message arrives); one
-        # without (its outcome depends on timing or on the frame it meets) may land under any key of its input, never twice
+        # without (its outcome depends on timing or on the frame it meets) may land under any key of its input, never
+        # twice
         sent_per_key, undecided = Counter(), Counter()
         for cls in storm.BAD_CLASSES:
             if cls.key is not None:

@@ -1,6 +1,6 @@
 """The pose-only configuration (``semantic_stream: false``, ``config/lite_pose.yaml``) end to end: the network,
-the Localizer (torch and onnx), bag replay (in process and through the node) and evaluate-bag. Training on data without labels or depth is
-in ``test_train.py``, the node in ``test_node_outputs.py``."""
+the Localizer (torch and onnx), bag replay (in process and through the node) and evaluate-bag. Training on data without
+labels or depth is in ``test_train.py``, the node in ``test_node_outputs.py``."""
 
 from __future__ import annotations
 
@@ -159,7 +159,8 @@ def test_localizer_on_a_pose_only_checkpoint(checkpoint, tmp_path, monkeypatch):
 
 @pytest.fixture(scope="module")
 def replayed(checkpoint, tmp_path_factory) -> Path:
-    """A folder with ``in.mcap`` (6 frames, no labels or depth) and ``out.mcap``, its in-process replay with the checkpoint."""
+    """A folder with ``in.mcap`` (6 frames, no labels or depth) and ``out.mcap``, its in-process replay with the
+    checkpoint."""
     root = tmp_path_factory.mktemp("pose_only_bag")
     ids = list(range(1, 7))
     t, q = trajectory(len(ids))

@@ -354,9 +354,9 @@ def test_the_recipes_trunk_configs_are_their_model_with_the_direct_pose_head(con
 
 
 def test_sigterm_stops_every_job_and_keeps_their_steps_and_time(tmp_path):
-    """SIGTERM to a recipe started as ``nohup ... &`` starts it (SIGINT ignored) stops its stage gracefully: the training
-    process saves the steps it took, the recipe exits 130, no process of it is left, and the time the stage ran is added
-    to timings.json, so that a resumed run sums its parts."""
+    """SIGTERM to a recipe started as ``nohup ... &`` starts it (SIGINT ignored) stops its stage gracefully: the
+    training process saves the steps it took, the recipe exits 130, no process of it is left, and the time the stage ran
+    is added to timings.json, so that a resumed run sums its parts."""
     from conftest import REPO
 
     stages = [{"name": "vo", "stage": "stl-vo", "schedule": [{"steps": 100000, "lr": 1e-3}], "threads": 1}]

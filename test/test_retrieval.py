@@ -14,7 +14,8 @@ from vlocnetpp_core.evaluation.retrieval import ReferenceSet, describe, open_ref
 
 @pytest.fixture(scope="module")
 def campus(tmp_path_factory):
-    """Eight training visits (one lap each, every circuit and direction twice) and one fresh visit (another seed) of the synthetic campus."""
+    """Eight training visits (one lap each, every circuit and direction twice) and one fresh visit (another seed) of the
+    synthetic campus."""
     from vlocnetpp_core.synth import render_dataset
 
     tmp = tmp_path_factory.mktemp("retrieval")

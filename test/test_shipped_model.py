@@ -84,7 +84,8 @@ def test_shipped_model_beats_an_untrained_one(fresh_loop, tmp_path):
 
 def test_the_shipped_retrieval_baseline_is_computed_from_the_training_images(fresh_loop):
     """The reference beside the model holds the descriptors of its training images (at least as many as the sidecar
-    says its last stage trained on) and retrieves, for each fresh frame, the pose of one of them: the README's baseline row."""
+    says its last stage trained on) and retrieves, for each fresh frame, the pose of one of them: the README's baseline
+    row."""
     from vlocnetpp_core.evaluation.retrieval import ReferenceSet, describe, reference_of
     from vlocnetpp_core.inference.checkpoint import read_checkpoint_meta
 

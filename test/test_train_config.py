@@ -1,4 +1,5 @@
-"""``TrainConfig``: built from the command line, a file or directly, checked once; a ``Trainer`` runs a step from one."""
+"""``TrainConfig``: built from the command line, a file or directly, checked once; a ``Trainer`` runs a step from
+one."""
 
 from __future__ import annotations
 
@@ -111,7 +112,8 @@ def test_the_train_config_imports_no_torch():
 
 
 def test_a_trainer_built_from_a_train_config_takes_a_step(tmp_path):
-    """No command line: a TrainConfig made in code runs an optimiser step that moves what the stage trains, and only that."""
+    """No command line: a TrainConfig made in code runs an optimiser step that moves what the stage trains, and only
+    that."""
     from vlocnetpp_core.synth import render_dataset
     from vlocnetpp_core.training.train_data import SeededClips
     from vlocnetpp_core.training.trainer import Trainer

@@ -39,7 +39,8 @@ def texture(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
 
 
 def render_plane(T_wc: torch.Tensor, K: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Image ``(1, 3, H, W)`` and depth ``(1, 1, H, W)`` of the slanted plane ``z = 6 + 0.15 x - 0.1 y`` (world frame)."""
+    """Image ``(1, 3, H, W)`` and depth ``(1, 1, H, W)`` of the slanted plane ``z = 6 + 0.15 x - 0.1 y`` (world
+    frame)."""
     pix = geometry.pixel_grid(H, W, dtype=torch.float64)
     rays = geometry.backproject(pix, torch.ones(len(pix), dtype=torch.float64), K)  # camera frame, z = 1
     d = rays @ T_wc[:3, :3].T

@@ -52,7 +52,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--map",
         default="auto",
         metavar="MAP.npz|auto",
-        help="keyframe map to refine against (default auto: NAME.map.npz beside the checkpoint, none when missing; '' for none)",
+        help="keyframe map to refine against (default auto: "
+        "NAME.map.npz beside the checkpoint, none when missing; '' for none)",
     )
 
 
@@ -124,7 +125,8 @@ def run(args: argparse.Namespace) -> int:
     refining = ", refining against the keyframe map" if map_path else ""
     t0 = _step(
         3,
-        f"replaying the bag through the real 'localizer' node over DDS (one frame at a time, every frame processed{refining})",
+        "replaying the bag through the real 'localizer' node over DDS "
+        f"(one frame at a time, every frame processed{refining})",
     )
     result_bag = out / "localized.mcap"
     summary = _replay_through_node(bag, checkpoint, map_path, result_bag)
@@ -161,7 +163,8 @@ def run(args: argparse.Namespace) -> int:
         print("note: no refined and no structure-based rows: " + (notes[0] if notes else "no keyframe map (--map '')"))
     if wall is not None:
         print(
-            f"through the node: {1000 * wall:.1f} ms per frame (image published -> pose received, lockstep, including DDS)"
+            f"through the node: {1000 * wall:.1f} ms per frame "
+            "(image published -> pose received, lockstep, including DDS)"
         )
     print()
     write_outputs(report, results, CLASS_NAMES, out / "metrics.json", None, out / "plots")

@@ -229,7 +229,8 @@ def pose_inverse(t: Array, q: Array) -> tuple[Array, Array]:
 
 @_numpy_compatible
 def relative_pose(t_prev: Array, q_prev: Array, t_cur: Array, q_cur: Array) -> tuple[Array, Array]:
-    """``T_rel = T_prev^{-1} T_cur``: camera t expressed in camera t-1 (SE(3) form, docs/conventions.md, Relative pose)."""
+    """``T_rel = T_prev^{-1} T_cur``: camera t expressed in camera t-1 (SE(3) form, docs/conventions.md, Relative
+    pose)."""
     ti, qi = pose_inverse(t_prev, q_prev)
     return pose_compose(ti, qi, t_cur, q_cur)
 

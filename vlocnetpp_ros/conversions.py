@@ -92,7 +92,8 @@ def depth_to_array(msg: Image) -> np.ndarray:
 
 
 def camera_info_to_intrinsics(msg: CameraInfo) -> Intrinsics:
-    """:class:`Intrinsics` from ``k`` of a ``sensor_msgs/CameraInfo`` (distortion is ignored: rectified images expected)."""
+    """:class:`Intrinsics` from ``k`` of a ``sensor_msgs/CameraInfo`` (distortion is ignored: rectified images
+    expected)."""
     k = np.asarray(msg.k, dtype=np.float64)
     if k.size != 9 or not np.isfinite(k).all() or k[0] <= 0 or k[4] <= 0 or msg.width <= 0 or msg.height <= 0:
         raise FrameError(
@@ -145,12 +146,14 @@ def pose_from_msg(pose: Pose) -> tuple[np.ndarray, np.ndarray]:
 
 
 def pose_stamped(result: LocalizerResult, header: Header) -> PoseStamped:
-    """Global pose ``T_map,cam`` of a result (``T_map,base`` once :func:`vlocnetpp_core.camera.extrinsics.to_base_frame` moved it)."""
+    """Global pose ``T_map,cam`` of a result (``T_map,base`` once :func:`vlocnetpp_core.camera.extrinsics.to_base_frame`
+    moved it)."""
     return PoseStamped(header=header, pose=pose_msg(result.t, result.q))
 
 
 def pose_with_covariance(result: LocalizerResult, header: Header) -> PoseWithCovarianceStamped:
-    """The global pose of :func:`pose_stamped` with ``result.pose_covariance`` (6x6, ROS order x, y, z, rot x, y, z; row-major)."""
+    """The global pose of :func:`pose_stamped` with ``result.pose_covariance`` (6x6, ROS order x, y, z, rot x, y, z;
+    row-major)."""
     msg = PoseWithCovarianceStamped(header=header)
     msg.pose.pose = pose_msg(result.t, result.q)
     msg.pose.covariance = np.asarray(result.pose_covariance, dtype=np.float64).reshape(36)
@@ -158,7 +161,8 @@ def pose_with_covariance(result: LocalizerResult, header: Header) -> PoseWithCov
 
 
 def odometry(result: LocalizerResult, header: Header, child_frame_id: str) -> Odometry:
-    """``nav_msgs/Odometry``: accumulated pose in ``header.frame_id``, twist in the child frame (camera or base), covariances."""
+    """``nav_msgs/Odometry``: accumulated pose in ``header.frame_id``, twist in the child frame (camera or base),
+    covariances."""
     msg = Odometry(header=header, child_frame_id=child_frame_id)
     msg.pose.pose = pose_msg(result.odom_t, result.odom_q)
     msg.pose.covariance = np.asarray(result.odom_covariance, dtype=np.float64).reshape(36)

@@ -179,7 +179,8 @@ def _through_node(probe: _Probe, node: _NodeProcess, msg: Image, stamp: float, t
     if not probe.spin_until(time.monotonic() + timeout_s, lambda: stamp in probe.pose_at and stamp in probe.seg_at):
         node.check_alive()
         raise UserError(
-            f"the localizer node did not answer the frame stamped {stamp:.3f} s within {timeout_s:.0f} s:\n{node.tail()}"
+            "the localizer node did not answer the frame stamped "
+            f"{stamp:.3f} s within {timeout_s:.0f} s:\n{node.tail()}"
         )
     return probe.pose_at[stamp] - sent
 

@@ -1,4 +1,5 @@
-"""``localizer``: the VLocNet++ ROS 2 node (``ros2 run vlocnetpp_ros localizer --ros-args --params-file config/localizer.yaml``).
+"""``localizer``: the VLocNet++ ROS 2 node
+(``ros2 run vlocnetpp_ros localizer --ros-args --params-file config/localizer.yaml``).
 
 Subscribes to a camera (``sensor_msgs/Image`` rgb8 / bgr8 / rgba8 / bgra8 / mono8, or
 ``CompressedImage`` on ``<image_topic>/compressed`` with ``use_compressed``), optionally an
@@ -174,7 +175,8 @@ class LocalizerNode(Node):
             f"refined against {map_path} every {p['refine_every']} frame(s)" if map_path else "no refinement (no map)"
         )
         self.get_logger().info(
-            f"localizer ready: {checkpoint} on {p['device']} ({p['backend']}, network input {w}x{h}), camera {image_topic}, "
+            f"localizer ready: {checkpoint} on {p['device']} ({p['backend']}, "
+            f"network input {w}x{h}), camera {image_topic}, "
             f"publishing the pose of {pose_of}, {refining}"
         )
 

@@ -22,7 +22,8 @@ PARAMETERS: dict[str, tuple[object, str]] = {
     "image_topic": (topics.IMAGE_TOPIC, "sensor_msgs/Image topic (with use_compressed: <image_topic>/compressed)"),
     "depth_topic": (
         "",
-        "aligned depth Image (32FC1 metres or 16UC1 mm, same stamp and size as the colour image); empty: predicted depth",
+        "aligned depth Image (32FC1 metres or 16UC1 mm, "
+        "same stamp and size as the colour image); empty: predicted depth",
     ),
     "camera_info_topic": ("", "sensor_msgs/CameraInfo topic of the camera; empty: the checkpoint's default intrinsics"),
     "use_compressed": (False, "subscribe to sensor_msgs/CompressedImage (PNG/JPEG) on <image_topic>/compressed"),
@@ -65,7 +66,8 @@ PARAMS_FILE_VALUES: dict[str, object] = {"map": MAP_AUTO}
 
 
 def default_checkpoint() -> Path:
-    """The shipped model (see :func:`vlocnetpp_core.inference.checkpoint.shipped_checkpoint`), as a node error when missing."""
+    """The shipped model (see :func:`vlocnetpp_core.inference.checkpoint.shipped_checkpoint`), as a node error when
+    missing."""
     try:
         return shipped_checkpoint()
     except FileNotFoundError as err:
@@ -108,6 +110,7 @@ def extrinsics_of(p: dict) -> CameraExtrinsics | None:
 
 
 def map_of(p: dict, checkpoint: Path, warn) -> Path | None:
-    """The keyframe map of parameter ``map`` (:func:`vlocnetpp_core.inference.checkpoint.resolve_map_path`; ``warn`` gets the
-    line for a missing ``auto`` map), or None: no refinement. A missing map file named by path is a ``DataError``."""
+    """The keyframe map of parameter ``map`` (:func:`vlocnetpp_core.inference.checkpoint.resolve_map_path`; ``warn``
+    gets the line for a missing ``auto`` map), or None: no refinement. A missing map file named by path is a
+    ``DataError``."""
     return resolve_map_path(checkpoint, p["map"], "parameter map", warn)

@@ -152,7 +152,8 @@ class _Bridge(DdsClient):
     """The rclpy side: publishers to the node, raw subscriptions to its outputs, spun from the caller's thread."""
 
     def __init__(self, namespace: str, compressed: bool, use_depth: bool, outputs: dict[str, str]):
-        """``outputs``: the ``/vlocnet/*`` topics the node publishes for this checkpoint (``checkpoint_output_types``)."""
+        """``outputs``: the ``/vlocnet/*`` topics the node publishes for this checkpoint
+        (``checkpoint_output_types``)."""
         super().__init__("vlocnetpp_replay_bridge", namespace)
         image_type = CompressedImage if compressed else Image
         self.image_pub = self.node.create_publisher(
@@ -321,7 +322,8 @@ class _Player:
                 self.record()
 
     def finish(self, answer_timeout_s: float, quiet_s: float) -> None:
-        """Wait for the answers to the last frames: all in, or ``quiet_s`` without any (capped by ``answer_timeout_s``)."""
+        """Wait for the answers to the last frames: all in, or ``quiet_s`` without any (capped by
+        ``answer_timeout_s``)."""
         deadline = time.monotonic() + answer_timeout_s
         self.last_answer = time.monotonic()
 

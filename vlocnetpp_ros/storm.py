@@ -87,7 +87,8 @@ def _depth_values(value: float, width: int, height: int) -> bytes:
 
 
 def _png_bomb(width: int = 30_000, height: int = 30_000) -> bytes:
-    """A valid PNG header declaring ``width x height`` grey pixels (a 2.7 GB image once decoded to RGB) with a few bytes of data."""
+    """A valid PNG header declaring ``width x height`` grey pixels (a 2.7 GB image once decoded to RGB) with a few bytes
+    of data."""
 
     def chunk(kind: bytes, data: bytes) -> bytes:
         return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
@@ -270,7 +271,8 @@ def classes_for(kinds: tuple[str, ...] | list[str]) -> list[BadClass]:
 def bad_messages(
     rng: np.random.Generator, classes: list[BadClass], count: int, stamp_s: float, width: int, height: int
 ):
-    """``count`` ``(class, message)`` pairs, classes drawn uniformly, stamps ``stamp_s`` (the strange-stamp classes choose their own)."""
+    """``count`` ``(class, message)`` pairs, classes drawn uniformly, stamps ``stamp_s`` (the strange-stamp classes
+    choose their own)."""
     for k in rng.integers(0, len(classes), count):
         cls = classes[int(k)]
         yield cls, cls.make(rng, stamp_s, width, height)

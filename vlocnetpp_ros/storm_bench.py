@@ -99,7 +99,8 @@ class StormPublisher(DdsClient):
         return all(p.get_subscription_count() > 0 for p in self.pubs.values()) and self.sub.get_publisher_count() > 0
 
     def good(self, gap_s: float = 0.05) -> float:
-        """A good frame (with its depth when the node takes depth), ``gap_s`` after the last stamp; returns its stamp."""
+        """A good frame (with its depth when the node takes depth), ``gap_s`` after the last stamp; returns its
+        stamp."""
         self.stamp += gap_s
         header = Header(stamp=conversions.seconds_to_stamp(self.stamp), frame_id="camera")
         frame = self.frames[int(self.stamp * 20) % len(self.frames)]

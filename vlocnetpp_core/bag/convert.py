@@ -19,8 +19,8 @@ extract --tf map ROBOT --camera-extrinsics ...`` reads it back. ``--no-labels`` 
 ``/camera/semantic``.
 
 Stamps: the frames of a sequence are ``1 / --rate`` apart (default 20 Hz DeepLoc, 30 Hz 7-Scenes)
-starting at 0 s, and each sequence starts :data:`vlocnetpp_core.data.sample.SEQUENCE_GAP_S` (10 s) after the previous one
-ends, longer than the node's ``max_gap_s``, so a replay resets the temporal state between loops.
+starting at 0 s, and each sequence starts :data:`vlocnetpp_core.data.sample.SEQUENCE_GAP_S` (10 s) after the previous
+one ends, longer than the node's ``max_gap_s``, so a replay resets the temporal state between loops.
 With ``--split all`` the test split follows the train split the same way.
 
 The conversion streams (memory does not grow with the dataset): :data:`DECODE_THREADS` background
@@ -73,7 +73,8 @@ DECODE_THREADS = 2
 
 @dataclass
 class ConvertSummary:
-    """What :func:`convert` wrote: ``frames``, messages per topic, file ``size_bytes``, bag ``duration_s`` and ``wall_s``."""
+    """What :func:`convert` wrote: ``frames``, messages per topic, file ``size_bytes``, bag ``duration_s`` and
+    ``wall_s``."""
 
     path: Path
     frames: int
@@ -85,7 +86,8 @@ class ConvertSummary:
     def format(self) -> str:
         lines = [
             f"wrote {self.path}: {self.frames} frames, {self.size_bytes / 2**20:.1f} MiB, "
-            f"{self.duration_s:.1f} s of bag time, in {self.wall_s:.1f} s ({self.frames / max(self.wall_s, 1e-9):.1f} frames/s)"
+            f"{self.duration_s:.1f} s of bag time, in {self.wall_s:.1f} s "
+            f"({self.frames / max(self.wall_s, 1e-9):.1f} frames/s)"
         ]
         lines += [f"  {topic:<32} {count} messages" for topic, count in self.topics.items()]
         return "\n".join(lines)

@@ -1,12 +1,13 @@
-"""``vlocnetpp evaluate-bag``: the metrics of ``vlocnetpp evaluate`` from a bag that holds ground truth and localizer outputs.
+"""``vlocnetpp evaluate-bag``: the metrics of ``vlocnetpp evaluate`` from a bag that holds ground truth and localizer
+outputs.
 
 Frames are matched by ``header.stamp``: a frame is scored when the bag has a ground-truth pose
 (``/ground_truth/pose``, or ``--ground-truth-topic``: ``PoseStamped``, ``PoseWithCovarianceStamped``
 or ``Odometry``) and a ``/vlocnet/pose`` with the same stamp. A robot's bag has its ground truth
 as TF instead: ``--tf PARENT CHILD`` (with ``--camera-extrinsics`` when CHILD is the robot, not the
 camera) takes it from ``/tf`` and ``/tf_static`` as ``extract`` does, interpolated to the stamps of
-``/vlocnet/pose`` (a frame further than ``--max-pose-gap`` from a TF sample is not scored). The matched frames are split into
-sequences where consecutive stamps are more than ``--max-gap-s`` apart (default 1 s, the node's
+``/vlocnet/pose`` (a frame further than ``--max-pose-gap`` from a TF sample is not scored). The matched frames are split
+into sequences where consecutive stamps are more than ``--max-gap-s`` apart (default 1 s, the node's
 ``max_gap_s`` after which it resets its temporal state; the converter leaves 10 s between
 sequences) and named
 ``seq-00``, ``seq-01``, ... in time order. Per sequence:
@@ -234,7 +235,8 @@ def score_segmentation(
                 raise DataError(
                     reader.path,
                     f"at stamp {ns / 1e9:.9f} s the {SEGMENTATION_TOPIC} mask is {mask.shape[1]}x{mask.shape[0]} "
-                    f"but {what} is {other.shape[1]}x{other.shape[0]} (the localizer publishes masks at the image size)",
+                    f"but {what} is {other.shape[1]}x{other.shape[0]} "
+                    "(the localizer publishes masks at the image size)",
                 )
         if labels is not None:
             conf = confusion_matrix(labels, mask, num_classes)
@@ -363,7 +365,8 @@ def bag_report(
 ) -> tuple[dict, list[SequenceResult]]:
     """``(report, results)`` of the bag at ``path`` (see the module doc): the network's pose, the refined one when the
     bag has ``/vlocnet/network_pose``, the retrieval baseline against ``reference`` (a
-    :class:`~vlocnetpp_core.evaluation.retrieval.ReferenceSet`) and the structure-based one against ``refiner``'s map, on the same frames."""
+    :class:`~vlocnetpp_core.evaluation.retrieval.ReferenceSet`) and the structure-based one against ``refiner``'s map,
+    on the same frames."""
     from vlocnetpp_core.mapping.evaluation import add_structure_baseline
 
     bag = collect_bag(path, ground_truth, max_gap_s, samples, describe=reference is not None, refiner=refiner)
@@ -388,7 +391,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     gt.add_argument(
         "--ground-truth-topic",
         default=GROUND_TRUTH_TOPIC,
-        help=f"ground-truth camera poses: PoseStamped, PoseWithCovarianceStamped or Odometry (default {GROUND_TRUTH_TOPIC})",
+        help="ground-truth camera poses: PoseStamped, "
+        f"PoseWithCovarianceStamped or Odometry (default {GROUND_TRUTH_TOPIC})",
     )
     gt.add_argument(
         "--tf",
@@ -402,7 +406,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--camera-extrinsics",
         metavar="X,Y,Z,QW,QX,QY,QZ",
         default=None,
-        help="with --tf: the camera's pose in CHILD (metres, unit quaternion), when CHILD is the robot and not the camera",
+        help="with --tf: the camera's pose in CHILD (metres, "
+        "unit quaternion), when CHILD is the robot and not the camera",
     )
     p.add_argument(
         "--max-pose-gap",
@@ -426,7 +431,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--map",
         default=None,
         metavar="MAP.npz",
-        help="keyframe map (vlocnetpp map build, e.g. models/vlocnetpp_lite.map.npz): adds the structure-based baseline "
+        help="keyframe map (vlocnetpp map build, "
+        "e.g. models/vlocnetpp_lite.map.npz): adds the structure-based baseline "
         "(retrieval + SIFT + PnP against the map, no network) on the bag's images; needs /camera/camera_info",
     )
 

@@ -141,7 +141,8 @@ def write_frames(
                     msg = messages.deserialize(raw, topics[topic])
                     if messages.stamp_ns(msg) != by_image[k].stamp_ns:  # both passes read the bag in the same order
                         raise UserError(
-                            f"{topic}: message {k} has another stamp on the second read of the bag; is it being written to?"
+                            f"{topic}: message {k} has another stamp on the second read of the bag; "
+                            "is it being written to?"
                         )
                     _write_image(msg, topic, by_image[k], writer, size, plan.skipped)
             elif k in by_depth:
@@ -193,7 +194,8 @@ def check_readback(root: Path, written: list[PlannedFrame]) -> list[str]:
         if len(index.sequences) != want:
             notes.append(
                 f"{split}: the DeepLoc reader sees {len(index.sequences)} sequences where {want} were written: it also "
-                "cuts where consecutive frames are over 5 m or 45 deg apart (a smaller --stride / --min-motion avoids it)"
+                "cuts where consecutive frames are over 5 m or 45 deg apart "
+                "(a smaller --stride / --min-motion avoids it)"
             )
     return notes
 
@@ -326,7 +328,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--image-topic",
         metavar="TOPIC",
-        help="camera topic, Image or CompressedImage (default /camera/image_raw, else .../compressed, else the only one)",
+        help="camera topic, Image or CompressedImage (default /camera/image_raw, "
+        "else .../compressed, else the only one)",
     )
     p.add_argument(
         "--camera-info-topic",
@@ -354,7 +357,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--camera-extrinsics",
         metavar="X,Y,Z,QW,QX,QY,QZ",
-        help="pose of the camera optical frame in CHILD (or the pose topic's robot frame): T_child,camera (default identity)",
+        help="pose of the camera optical frame in CHILD (or the pose topic's robot frame): "
+        "T_child,camera (default identity)",
     )
     p.add_argument(
         "--max-pose-gap",

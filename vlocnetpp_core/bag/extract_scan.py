@@ -243,14 +243,16 @@ def camera_intrinsics(
 def camera_poses(
     chain: PoseChain, stamps: np.ndarray, src: Sources, opts: ExtractOptions
 ) -> tuple[np.ndarray, np.ndarray, list]:
-    """``T_wc`` ``(t (N, 3), q (N, 4))`` at the image stamps and the pose reasons; a ``UserError`` when no image has one."""
+    """``T_wc`` ``(t (N, 3), q (N, 4))`` at the image stamps and the pose reasons; a ``UserError`` when no image has
+    one."""
     t, q, reasons = chain.camera_at(stamps, opts.max_pose_gap_s, opts.camera_extrinsics)
     if all(r is not None for r in reasons):
         span = chain.dynamic_span_ns()
         poses = "" if span is None else f", poses {span[0] / 1e9:.3f}..{span[1] / 1e9:.3f} s"
         why = Counter(reasons).most_common(1)[0][0]
         raise UserError(
-            f"no image of {src.image} has a pose from {src.pose_name} (images {stamps.min() / 1e9:.3f}..{stamps.max() / 1e9:.3f} s"
+            f"no image of {src.image} has a pose from {src.pose_name} "
+            f"(images {stamps.min() / 1e9:.3f}..{stamps.max() / 1e9:.3f} s"
             f"{poses}; {why})"
         )
     return t, q, reasons

@@ -3,8 +3,10 @@
 Layout (what :mod:`vlocnetpp_core.data.deeploc` reads; no labels)::
 
     OUT/DeepLoc/{train,test}/LeftImages/Image_<id>.png           RGB (BGR on disk, as cv2 writes), lossless
-    OUT/DeepLoc/{train,test}/poses.txt                           '# comment', header, 'Image_<id>.png x y z qw qx qy qz' (T_wc)
-    OUT/DeepLoc/{train,test}/stamps.txt                          'Image_<id>.png <header stamp, integer ns>' (not read by the reader)
+    OUT/DeepLoc/{train,test}/poses.txt                           '# comment', header, 'Image_<id>.png x y z qw qx qy qz'
+                                                                 (T_wc)
+    OUT/DeepLoc/{train,test}/stamps.txt                          'Image_<id>.png <header stamp, integer ns>'
+                                                                 (not read by the reader)
     OUT/DeepLoc_stereo/{train,test}/DepthImages/Image_<id>.pfm   32FC1 depth: float32 metres (0 = invalid)
     OUT/DeepLoc_stereo/{train,test}/DepthImages/Image_<id>.png   16UC1 depth: uint16 millimetres as in the bag
     OUT/intrinsics.json                                          {"fx", "fy", "cx", "cy", "width", "height"}

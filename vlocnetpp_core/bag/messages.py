@@ -1,8 +1,8 @@
 """ROS 2 Jazzy messages as ``rosbags`` objects: built from numpy, read back to numpy. No rclpy here.
 
 The types come from ``rosbags.typesys`` (``Stores.ROS2_JAZZY``), so the definitions written into
-a bag are the real Jazzy ones. Conventions (docs/conventions.md, Stamps; Poses and frames): stamps are float seconds in core
-and ``builtin_interfaces/Time`` (or integer nanoseconds, the bag's log time) here; quaternions
+a bag are the real Jazzy ones. Conventions (docs/conventions.md, Stamps; Poses and frames): stamps are float seconds in
+core and ``builtin_interfaces/Time`` (or integer nanoseconds, the bag's log time) here; quaternions
 are ``(w, x, y, z)`` in core and ``(x, y, z, w)`` in the messages, converted only in this module.
 The rclpy twin of these builders is the node package's ``conversions`` module (a different type system).
 """
@@ -174,7 +174,8 @@ def pose_stamped(ns: int, frame_id: str, t: np.ndarray, q_wxyz: np.ndarray) -> A
 def pose_with_covariance_stamped(
     ns: int, frame_id: str, t: np.ndarray, q_wxyz: np.ndarray, covariance: np.ndarray
 ) -> Any:
-    """``geometry_msgs/PoseWithCovarianceStamped``: :func:`pose_stamped` plus a 6x6 covariance (ROS order, row-major)."""
+    """``geometry_msgs/PoseWithCovarianceStamped``: :func:`pose_stamped` plus a 6x6 covariance (ROS order,
+    row-major)."""
     return _T[POSE_WITH_COVARIANCE_STAMPED](
         header=header(ns, frame_id),
         pose=_T["geometry_msgs/msg/PoseWithCovariance"](

@@ -240,7 +240,8 @@ class TfCollector:
         common = next((f for f in up_p if f in set(up_c)), None)
         if common is None:
             raise UserError(
-                f"--tf: frames {parent!r} and {child!r} are not connected in the TF tree (roots {up_p[-1]!r} and {up_c[-1]!r})"
+                f"--tf: frames {parent!r} and {child!r} are not connected "
+                f"in the TF tree (roots {up_p[-1]!r} and {up_c[-1]!r})"
             )
         edges = [(tree[f][1], True) for f in up_p[: up_p.index(common)]]
         edges += [(tree[f][1], False) for f in reversed(up_c[: up_c.index(common)])]

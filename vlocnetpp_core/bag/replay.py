@@ -112,7 +112,10 @@ class ReplaySummary:
     startup_s: float = 0.0
 
     def format(self) -> str:
-        text = f"wrote {self.path}: {self.processed} frames localized in {self.wall_s:.1f} s ({self.processed / max(self.wall_s, 1e-9):.1f} frames/s)"
+        text = (
+            f"wrote {self.path}: {self.processed} frames localized in {self.wall_s:.1f} s "
+            f"({self.processed / max(self.wall_s, 1e-9):.1f} frames/s)"
+        )
         if self.startup_s:
             text += f", after {self.startup_s:.1f} s of node start-up"
         if self.resets:
@@ -133,7 +136,8 @@ def choose_image_topic(topics: dict[str, str], wanted: str | None, path: Path) -
         if topics.get(wanted) not in (messages.IMAGE, messages.COMPRESSED_IMAGE):
             raise DataError(
                 path,
-                f"--image-topic {wanted}: no Image or CompressedImage topic of that name (image topics: {', '.join(images) or 'none'})",
+                f"--image-topic {wanted}: no Image or CompressedImage topic "
+                f"of that name (image topics: {', '.join(images) or 'none'})",
             )
         return wanted
     for t in (IMAGE_TOPIC, COMPRESSED_TOPIC):
@@ -160,8 +164,8 @@ def groups_by_log_time(stream: Iterable[tuple[str, int, Any]]) -> Iterator[list[
 
 
 def output_messages(result, image_msg: Any, network_pose: bool = False) -> list[tuple[str, Any]]:
-    """The ``/vlocnet/*`` messages of a :class:`~vlocnetpp_core.inference.localizer.LocalizerResult` with the stamp and frame of
-    ``image_msg`` (no segmentation when ``result.mask`` is None: a pose-only model; the network's own pose on
+    """The ``/vlocnet/*`` messages of a :class:`~vlocnetpp_core.inference.localizer.LocalizerResult` with the stamp and
+    frame of ``image_msg`` (no segmentation when ``result.mask`` is None: a pose-only model; the network's own pose on
     ``/vlocnet/network_pose`` with ``network_pose``: a localizer refining against a map)."""
     ns, camera = messages.stamp_ns(image_msg), image_msg.header.frame_id
     out = [
@@ -301,7 +305,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--rate",
         default=None,
         metavar="HZ|max",
-        help="--through-node: publish at the bag's rate (default), at HZ frames/s, or 'max': the next image when the previous pose came back",
+        help="--through-node: publish at the bag's rate (default), at HZ frames/s, "
+        "or 'max': the next image when the previous pose came back",
     )
     p.add_argument(
         "--max-gap-s",
@@ -327,7 +332,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         type=int,
         default=1,
         metavar="K",
-        help="with --map: refine every K-th frame, the odometry moves the refined pose on in between (default 1: every frame)",
+        help="with --map: refine every K-th frame, "
+        "the odometry moves the refined pose on in between (default 1: every frame)",
     )
     p.add_argument("--device", default="cpu", help="torch device (default cpu)")
     p.add_argument("--force", action="store_true", help="replace OUT.mcap if it exists")
@@ -377,8 +383,8 @@ def parse_rate(text: str | None) -> float | None:
 
 
 def map_argument(args: argparse.Namespace) -> Path | None:
-    """The keyframe map of ``--map`` (:func:`vlocnetpp_core.inference.checkpoint.resolve_map_path`: ``auto`` without a map beside
-    the checkpoint warns on stderr and gives None), ``--refine-every`` checked."""
+    """The keyframe map of ``--map`` (:func:`vlocnetpp_core.inference.checkpoint.resolve_map_path`: ``auto`` without a
+    map beside the checkpoint warns on stderr and gives None), ``--refine-every`` checked."""
     from vlocnetpp_core.inference.checkpoint import resolve_map_path
 
     if args.refine_every < 1:

@@ -25,7 +25,8 @@ POSE_WITH_COVARIANCE_TOPIC = (
 )
 ODOMETRY_TOPIC = "/vlocnet/odometry"
 SEGMENTATION_TOPIC = "/vlocnet/segmentation"
-# With a keyframe map (refinement on): the network's own global pose (PoseStamped), beside the published one on POSE_TOPIC
+# With a keyframe map (refinement on): the network's own global pose (PoseStamped), beside the published one on
+# POSE_TOPIC
 NETWORK_POSE_TOPIC = "/vlocnet/network_pose"
 OUTPUT_TOPICS = (POSE_TOPIC, POSE_WITH_COVARIANCE_TOPIC, ODOMETRY_TOPIC, SEGMENTATION_TOPIC, NETWORK_POSE_TOPIC)
 DIAGNOSTICS_TOPIC = "/diagnostics"

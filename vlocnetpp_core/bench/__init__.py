@@ -4,14 +4,20 @@ Figures (each with its target; ratios are measured interleaved, see :mod:`.timin
 
 =================================== ======== =========================================================
 ``cached_vs_recompute_speedup``     >= 1.4   paper config: step recomputing frame t-1 / step with the cached state
-``mtl_step_over_resnet50``          <= 3.0   paper config: full multitask step (fastest backend; each reported) / one plain ResNet-50 forward, same input
-``node_latency_over_step``          <= 1.10  lite: image-in -> pose-out through the real node over DDS / bare ``Localizer.step``
-``lite_hz``                         >= 15    lite: ``Localizer.step`` per second at its input size (faster backend; both reported)
-``converter_speed_over_png_decode`` >= 0.8   frames/s of ``vlocnetpp convert`` / frames/s of decoding the same PNGs alone
+``mtl_step_over_resnet50``          <= 3.0   paper config: full multitask step (fastest backend; each reported) / one
+                                             plain ResNet-50 forward, same input
+``node_latency_over_step``          <= 1.10  lite: image-in -> pose-out through the real node over DDS / bare
+                                             ``Localizer.step``
+``lite_hz``                         >= 15    lite: ``Localizer.step`` per second at its input size (faster backend; both
+                                             reported)
+``converter_speed_over_png_decode`` >= 0.8   frames/s of ``vlocnetpp convert`` / frames/s of decoding the same PNGs
+                                             alone
 ``synth_fps``                       >= 30    synthetic campus frames rendered per second at 320x180
 ``peak_rss_mb``                     (none)   peak resident memory of the node process while streaming (MiB)
-``paper_step_ms``                   <= 5     paper step in ms (fastest backend); target on CUDA only (H100-class GPU goal, docs/performance.md)
-``node_refined_hz``                 >= 15    shipped lite model + its keyframe map, refining every frame: frames/s through the node
+``paper_step_ms``                   <= 5     paper step in ms (fastest backend); target on CUDA only (H100-class GPU
+                                             goal, docs/performance.md)
+``node_refined_hz``                 >= 15    shipped lite model + its keyframe map, refining every frame: frames/s
+                                             through the node
 =================================== ======== =========================================================
 
 The refinement's cost per frame (``Localizer.step`` with and without the map, every frame and every second frame,
@@ -20,8 +26,8 @@ interleaved) and the node's rate refining every second frame are reported beside
 
 Also reported: ``mtl_gmac_over_resnet50``, the step's multiply-accumulates over the ResNet-50's
 (the time ratio of a backend exactly as efficient as the yardstick), and on CUDA the step replayed
-from a CUDA graph (:mod:`.cuda_graph`) and the step compiled by ``torch.compile`` as further backends. Figures whose parts are not installed
-(ROS 2, ``rosbags``, ``onnx`` / ``onnxruntime``) are None with a note saying why.
+from a CUDA graph (:mod:`.cuda_graph`) and the step compiled by ``torch.compile`` as further backends. Figures whose
+parts are not installed (ROS 2, ``rosbags``, ``onnx`` / ``onnxruntime``) are None with a note saying why.
 
 Untrained checkpoints (``init_checkpoint``) are used: speed does not depend on the weights.
 ``--quick`` (under a minute) runs the paper config at 224x128 instead of 448x256 and fewer
@@ -48,7 +54,8 @@ from vlocnetpp_core.threads import use_threads
 
 @dataclass
 class BenchSettings:
-    """What ``vlocnetpp bench`` runs. Sizes are ``(W, H)``; ``threads`` as everywhere (:mod:`vlocnetpp_core.threads`; 0: all cores but one, like the node)."""
+    """What ``vlocnetpp bench`` runs. Sizes are ``(W, H)``; ``threads`` as everywhere (:mod:`vlocnetpp_core.threads`; 0:
+    all cores but one, like the node)."""
 
     repetitions: int = 7
     warmup: int = 2
@@ -390,7 +397,8 @@ def format_table(report: dict) -> str:
     """The report as a text table: figure, value, target, met, and the absolute times behind it."""
     t = report["times_ms"]
     basis = {
-        "cached_vs_recompute_speedup": f"recompute {t.get('paper_step_recompute', 0):.1f} ms / cached {t.get('paper_step_cached', 0):.1f} ms"
+        "cached_vs_recompute_speedup": f"recompute {t.get('paper_step_recompute', 0):.1f} ms "
+        f"/ cached {t.get('paper_step_cached', 0):.1f} ms"
         f" at {report['paper_input_size'][0]}x{report['paper_input_size'][1]}",
         "mtl_step_over_resnet50": f"{report['paper_backend']}: torch step {t['paper_step_cached']:.1f} ms"
         + (f", onnx {t['paper_step_onnx']:.1f} ms" if "paper_step_onnx" in t else "")
@@ -398,7 +406,8 @@ def format_table(report: dict) -> str:
         + (f", compiled {t['paper_step_compiled']:.2f} ms" if "paper_step_compiled" in t else "")
         + f" / ResNet-50 {t['resnet50_forward']:.1f} ms (compute {report['mtl_gmac_over_resnet50']:.2f}x)",
         "node_latency_over_step": (
-            f"node {t['node_latency']:.1f} ms / bare {t['node_bare_step']:.1f} ms ({report['settings']['node_backend']}, "
+            f"node {t['node_latency']:.1f} ms / bare {t['node_bare_step']:.1f} ms "
+            f"({report['settings']['node_backend']}, "
             f"{report['settings']['node_transport']} DDS, "
             f"camera {report['camera_size'][0]}x{report['camera_size'][1]})"
         )
@@ -415,7 +424,8 @@ def format_table(report: dict) -> str:
         if "converter_frame" in t
         else "not measured",
         "synth_fps": f"{t['synth_frame']:.1f} ms per frame",
-        "train_nchw_over_nhwc": f"NCHW {t['train_step_nchw']:.0f} ms / channels-last {t['train_step_nhwc']:.0f} ms per step",
+        "train_nchw_over_nhwc": f"NCHW {t['train_step_nchw']:.0f} ms / channels-last "
+        f"{t['train_step_nhwc']:.0f} ms per step",
         "peak_rss_mb": f"now {report['node_rss_mb']:.0f} MiB" if "node_rss_mb" in report else "not measured",
         "paper_step_ms": f"{report['machine']['device']}",
         "node_refined_hz": _refinement_basis(report),
@@ -430,7 +440,8 @@ def format_table(report: dict) -> str:
     lines = ["  ".join(r[i].ljust(widths[i]) for i in range(4)) + "  " + r[4] for r in rows]
     m = report["machine"]
     lines.append(
-        f"\n{m['device']}, {m['cpus']} CPUs, torch {m['torch']} ({m['torch_threads']} threads), onnxruntime {m['onnxruntime'] or 'not installed'}; "
+        f"\n{m['device']}, {m['cpus']} CPUs, torch {m['torch']} ({m['torch_threads']} threads), "
+        f"onnxruntime {m['onnxruntime'] or 'not installed'}; "
         f"load average {m['load_average_start']} -> {m['load_average_end']}"
     )
     lines += [f"note: {n}" for n in report["notes"]]
@@ -444,7 +455,8 @@ def _refinement_basis(report: dict) -> str:
         return "not measured"
     text = (
         f"step: network {t['refine_step_none']:.1f} ms, refining every frame {t['refine_step_every1']:.1f} ms "
-        f"(+{t['refine_step_every1'] - t['refine_step_none']:.1f} ms, {100 * report['refine_share_every1']:.0f} % refined), "
+        f"(+{t['refine_step_every1'] - t['refine_step_none']:.1f} ms, "
+        f"{100 * report['refine_share_every1']:.0f} % refined), "
         f"every 2nd {t['refine_step_every2']:.1f} ms"
     )
     if "node_refined_latency_every2" in t:

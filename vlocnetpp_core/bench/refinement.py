@@ -27,8 +27,8 @@ EVERY = (1, 2)
 
 
 def shipped_model_and_map(map_setting: str = "auto") -> tuple[Path, Path]:
-    """The shipped checkpoint and the keyframe map of ``map_setting`` (:func:`~vlocnetpp_core.inference.checkpoint.resolve_map_path`);
-    ``UserError`` saying which is missing."""
+    """The shipped checkpoint and the keyframe map of ``map_setting``
+    (:func:`~vlocnetpp_core.inference.checkpoint.resolve_map_path`); ``UserError`` saying which is missing."""
     from vlocnetpp_core.inference.checkpoint import resolve_map_path, shipped_checkpoint
 
     try:
@@ -89,7 +89,8 @@ def node_rates(
     warmup: int,
     map_setting: str = "auto",
 ) -> dict:
-    """Lockstep seconds per frame through the node over DDS with the shipped model and map, refining every k-th frame."""
+    """Lockstep seconds per frame through the node over DDS with the shipped model and map, refining every k-th
+    frame."""
     from vlocnetpp_core.bench.figures import node_latency
 
     checkpoint, map_path = shipped_model_and_map(map_setting)

@@ -49,7 +49,8 @@ IDENTITY_VALUES = (0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)  # x, y, z, qw, qx, qy, qz
 
 @dataclass(frozen=True, eq=False)
 class CameraExtrinsics:
-    """``T_base,camera``: the camera's pose in the base frame, ``t (3,)`` metres, ``q (4,)`` ``(w, x, y, z)``, ``w >= 0``."""
+    """``T_base,camera``: the camera's pose in the base frame, ``t (3,)`` metres, ``q (4,)`` ``(w, x, y, z)``,
+    ``w >= 0``."""
 
     t: np.ndarray
     q: np.ndarray
@@ -74,7 +75,10 @@ class CameraExtrinsics:
     ) -> CameraExtrinsics:
         """From 7 numbers ``x, y, z, qw, qx, qy, qz``; the quaternion must be unit-norm within ``tolerance``
         (it is then normalised). Raises :class:`UserError` naming ``name`` otherwise."""
-        what = f"{name} must be 7 numbers [x, y, z, qw, qx, qy, qz] (the camera's pose in base_frame: metres, unit quaternion)"
+        what = (
+            f"{name} must be 7 numbers [x, y, z, qw, qx, qy, qz] "
+            "(the camera's pose in base_frame: metres, unit quaternion)"
+        )
         if isinstance(values, (str, bytes)) or not isinstance(values, Sequence | np.ndarray):
             raise UserError(f"{what}, got {values!r}")
         items = list(values)
@@ -110,7 +114,8 @@ class CameraExtrinsics:
 
     @cached_property
     def adjoint(self) -> np.ndarray:
-        """``(6, 6)`` ``Ad(T_base,camera)`` acting on ``(translation, rotation)`` 6-vectors: ``[[R, [t]x R], [0, R]]``."""
+        """``(6, 6)`` ``Ad(T_base,camera)`` acting on ``(translation, rotation)`` 6-vectors:
+        ``[[R, [t]x R], [0, R]]``."""
         return _adjoint(self.matrix[:3, :3], self.t)
 
     def values(self) -> list[float]:
@@ -145,7 +150,8 @@ def base_pose_covariance(covariance: np.ndarray, q_wc: np.ndarray, ext: CameraEx
 
 
 def base_odometry(t_oc: np.ndarray, q_oc: np.ndarray, ext: CameraExtrinsics) -> tuple[np.ndarray, np.ndarray]:
-    """``T_base,camera T_odom,camera T_camera,base``: the odometry (or a relative pose) of the base, identity at identity."""
+    """``T_base,camera T_odom,camera T_camera,base``: the odometry (or a relative pose) of the base, identity at
+    identity."""
     return _moved(t_oc, q_oc, ext.matrix, ext)
 
 

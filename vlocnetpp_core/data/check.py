@@ -191,12 +191,14 @@ def format_report(report: dict) -> str:
     warnings = []
     for split, s in report["splits"].items():
         lines.append(
-            f"{split}: {s['frames']} frames in {s['sequences']} sequences (lengths {', '.join(map(str, s['sequence_lengths']))}),"
+            f"{split}: {s['frames']} frames in {s['sequences']} sequences "
+            f"(lengths {', '.join(map(str, s['sequence_lengths']))}),"
             f" images {s['image_size'][0]}x{s['image_size'][1]}"
         )
         lines.append(f"  depth on {s['depth_frames']} frames, labels on {s['label_frames']} frames")
         lines.append(
-            f"  trajectory {s['trajectory_length_m']:.1f} m, step median {s['median_step_m']:.3f} m, max {s['max_step_m']:.3f} m"
+            f"  trajectory {s['trajectory_length_m']:.1f} m, "
+            f"step median {s['median_step_m']:.3f} m, max {s['max_step_m']:.3f} m"
         )
         if "class_histogram" in s:
             shares = ", ".join(f"{k} {100 * v:.1f}%" for k, v in s["class_histogram"].items() if v > 0)
@@ -208,7 +210,8 @@ def format_report(report: dict) -> str:
             lines.append("  warp consistency: not measured (needs consecutive frames with depth)")
         else:
             lines.append(
-                f"  warp consistency: {r:.3f} over {s['warp_pairs']} frame pairs (below 1 = poses, depth, intrinsics agree)"
+                f"  warp consistency: {r:.3f} over {s['warp_pairs']} frame pairs "
+                "(below 1 = poses, depth, intrinsics agree)"
             )
             if r > WARN_RATIO:
                 warnings.append(

@@ -26,7 +26,8 @@ def detect_format(path: str | Path) -> str:
         return "7scenes"
     raise DataError(
         p,
-        "unknown dataset layout: expected DeepLoc/{train,test}/LeftImages/ (DeepLoc) or TrainSplit.txt + seq-XX/ (7-Scenes)",
+        "unknown dataset layout: expected DeepLoc/{train,test}/LeftImages/ "
+        "(DeepLoc) or TrainSplit.txt + seq-XX/ (7-Scenes)",
     )
 
 
@@ -155,7 +156,8 @@ def clip_to_tensors(
     for f in frames:
         if f.image.shape[:2] != (h, w):
             raise ValueError(
-                f"frames of a clip differ in size ({f.frame_id}: {f.image.shape[:2]} vs {(h, w)}); use a transform with a fixed size"
+                f"frames of a clip differ in size ({f.frame_id}: "
+                f"{f.image.shape[:2]} vs {(h, w)}); use a transform with a fixed size"
             )
     dense = {}
     if depth:

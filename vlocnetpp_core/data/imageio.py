@@ -105,7 +105,8 @@ def read_depth(path: str | Path, shape: tuple[int, int] | None = None) -> np.nda
 
 
 def write_image(path: str | Path, img: np.ndarray) -> None:
-    """Write ``img`` with OpenCV (colour in BGR order; 16-bit PNG for uint16); ``DataError`` naming the file on failure."""
+    """Write ``img`` with OpenCV (colour in BGR order; 16-bit PNG for uint16); ``DataError`` naming the file on
+    failure."""
     if not cv2.imwrite(str(path), np.ascontiguousarray(img)):
         raise DataError(path, "could not write the image (disk full or no permission?)")
 

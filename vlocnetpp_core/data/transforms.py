@@ -34,7 +34,8 @@ GREY_WEIGHTS = np.array([0.299, 0.587, 0.114])  # RGB -> grey (ITU-R BT.601 luma
 
 def resize_frame(frame: Frame, width: int, height: int) -> Frame:
     """Resize to ``width x height`` (aspect may change; intrinsics follow) with the localizer's rules
-    (:func:`vlocnetpp_core.inference.preprocess.resize_image`, :func:`~vlocnetpp_core.inference.preprocess.resize_nearest`)."""
+    (:func:`vlocnetpp_core.inference.preprocess.resize_image`,
+    :func:`~vlocnetpp_core.inference.preprocess.resize_nearest`)."""
     h, w = frame.image.shape[:2]
     if (w, h) == (width, height):
         return frame

@@ -1,1 +1,2 @@
-"""Evaluation: the ``evaluate`` command, the paper's metrics, reports and plots, trajectories, and the retrieval baseline."""
+"""Evaluation: the ``evaluate`` command, the paper's metrics, reports and plots, trajectories, and the retrieval
+baseline."""

@@ -76,7 +76,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--use-depth",
         action="store_true",
-        help="give the dataset depth to the localizer (as the node's aligned depth input) instead of the predicted depth",
+        help="give the dataset depth to the localizer (as the node's "
+        "aligned depth input) instead of the predicted depth",
     )
     p.add_argument(
         "--max-frames", type=int, default=None, metavar="N", help="evaluate at most the first N frames of each sequence"
@@ -121,9 +122,9 @@ def run_localizer(
 
     The temporal state is reset at each sequence start. Frames the localizer rejects
     (``FrameError``, e.g. non-finite outputs) are left out, as the node drops them. With ``describe`` the
-    retrieval descriptors of the frames are kept (:func:`vlocnetpp_core.evaluation.retrieval.describe`); with ``structure``
-    (a :class:`~vlocnetpp_core.mapping.refiner.Refiner`) the structure-based baseline runs on the same frames.
-    ``ms`` is the localizer's own wall time of ``step`` (decoding the dataset files is not included).
+    retrieval descriptors of the frames are kept (:func:`vlocnetpp_core.evaluation.retrieval.describe`); with
+    ``structure`` (a :class:`~vlocnetpp_core.mapping.refiner.Refiner`) the structure-based baseline runs on the same
+    frames. ``ms`` is the localizer's own wall time of ``step`` (decoding the dataset files is not included).
     """
     from tqdm import tqdm
 
@@ -264,12 +265,14 @@ def run(args: argparse.Namespace) -> int:
     print(format_report(report, {r.name: len(r.stamps) for r in results}))
     if reference is None:
         print(
-            f"note: no retrieval baseline: --data has no other split than {args.split!r} to look frames up in; give --reference"
+            "note: no retrieval baseline: --data has no other split "
+            f"than {args.split!r} to look frames up in; give --reference"
         )
     if untrained:
         print(
             f"note: {args.checkpoint} was not trained for {', '.join(TASK_NAMES[t] for t in untrained)} (stage "
-            f"{localizer.meta['training'].get('stage')} and its --init checkpoints): those columns are an untrained network's"
+            f"{localizer.meta['training'].get('stage')} and its --init checkpoints): "
+            "those columns are an untrained network's"
         )
     if rejected:
         print(

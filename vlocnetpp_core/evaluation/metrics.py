@@ -57,7 +57,8 @@ def pose_errors(
 
 
 def accuracy_key(threshold_m: float, threshold_deg: float) -> str:
-    """JSON key of a threshold: below 0.1 m in centimetres (``accuracy_5cm_5deg``), else metres (``accuracy_0.5m_5deg``)."""
+    """JSON key of a threshold: below 0.1 m in centimetres (``accuracy_5cm_5deg``), else metres
+    (``accuracy_0.5m_5deg``)."""
     dist = f"{threshold_m * 100:g}cm" if threshold_m < 0.1 else f"{threshold_m:g}m"
     return f"accuracy_{dist}_{threshold_deg:g}deg"
 
@@ -65,7 +66,8 @@ def accuracy_key(threshold_m: float, threshold_deg: float) -> str:
 def pose_metrics(
     trans_err: np.ndarray, rot_err: np.ndarray, thresholds: Sequence[tuple[float, float]] = DEFAULT_THRESHOLDS
 ) -> dict:
-    """``median_translation_m``, ``median_rotation_deg`` and one ``accuracy_*`` share per ``(metres, degrees)`` threshold."""
+    """``median_translation_m``, ``median_rotation_deg`` and one ``accuracy_*`` share per ``(metres, degrees)``
+    threshold."""
     trans_err = np.asarray(trans_err, np.float64)
     rot_err = np.asarray(rot_err, np.float64)
     empty = len(trans_err) == 0
@@ -165,13 +167,15 @@ def confusion_matrix(
     for name, v in (("true", y), ("predicted", p)):
         if v.size and (v.min() < 0 or v.max() >= num_classes):
             raise ValueError(
-                f"{name} labels outside 0..{num_classes - 1}: {sorted(set(v[(v < 0) | (v >= num_classes)].tolist()))[:5]}"
+                f"{name} labels outside 0..{num_classes - 1}: "
+                f"{sorted(set(v[(v < 0) | (v >= num_classes)].tolist()))[:5]}"
             )
     return np.bincount(y * num_classes + p, minlength=num_classes * num_classes).reshape(num_classes, num_classes)
 
 
 def segmentation_metrics(confusion: np.ndarray | None, class_names: Sequence[str] = CLASS_NAMES) -> dict:
-    """``miou``, ``iou`` (dict by class name, ``None`` for classes in neither truth nor prediction) and ``pixel_accuracy``."""
+    """``miou``, ``iou`` (dict by class name, ``None`` for classes in neither truth nor prediction) and
+    ``pixel_accuracy``."""
     if confusion is None or confusion.sum() == 0:
         return {"miou": None, "iou": {n: None for n in class_names}, "pixel_accuracy": None}
     conf = np.asarray(confusion, np.float64)
@@ -280,7 +284,8 @@ class SequenceRecorder:
     def add(
         self, stamp: float, true_t, true_q, pred_t, pred_q, rel_t=None, rel_q=None, ms: float | None = None
     ) -> None:
-        """One frame: ground-truth and predicted global pose, predicted relative pose (None on the first frame is fine)."""
+        """One frame: ground-truth and predicted global pose, predicted relative pose (None on the first frame is
+        fine)."""
         identity = rel_t is None and len(self) == 0
         rows = self._rows
         rows["stamps"].append(float(stamp))

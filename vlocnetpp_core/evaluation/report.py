@@ -51,7 +51,8 @@ def add_report_arguments(p: argparse.ArgumentParser, reference_help: str) -> Non
         "--threshold-m",
         type=float,
         default=0.5,
-        help="translation threshold of a further pose accuracy (default 0.5 m; 5 cm / 5 deg and 0.5 m / 5 deg are always reported)",
+        help="translation threshold of a further pose accuracy (default 0.5 m; "
+        "5 cm / 5 deg and 0.5 m / 5 deg are always reported)",
     )
     p.add_argument(
         "--threshold-deg",
@@ -191,7 +192,8 @@ def baseline_verdict(report: dict) -> str | None:
     else:
         verdict = "the network does NOT beat retrieval"
     return (
-        f"{verdict}: median {_num(net['median_translation_m'], '.3f')} m / {_num(net['median_rotation_deg'], '.2f')} deg against "
+        f"{verdict}: median {_num(net['median_translation_m'], '.3f')} m "
+        f"/ {_num(net['median_rotation_deg'], '.2f')} deg against "
         f"{_num(ref['median_translation_m'], '.3f')} m / {_num(ref['median_rotation_deg'], '.2f')} deg "
         f"(nearest of {base['reference_frames']} reference images of {base['reference']})"
     )
@@ -269,7 +271,8 @@ def format_report(report: dict, frames: dict[str, int] | None = None) -> str:
         lines += refinement_lines(report)
     lengths = overall["odometry"]["lengths_m"]
     lines.append(
-        f"odometry segment lengths [m]: {', '.join(f'{v:g}' for v in lengths) if lengths else '- (sequences too short)'}"
+        "odometry segment lengths [m]: "
+        f"{', '.join(f'{v:g}' for v in lengths) if lengths else '- (sequences too short)'}"
     )
     iou = {k: v for k, v in overall["segmentation"]["iou"].items() if v is not None} if has_seg else {}
     if iou:

@@ -67,7 +67,8 @@ class ReferenceSet:
         return np.argmax(q @ self._centred.T, axis=1)
 
     def ranked(self, query: np.ndarray, count: int) -> np.ndarray:
-        """``query (D,)`` raw descriptor -> the indices ``(count,)`` of the most similar reference images, most similar first."""
+        """``query (D,)`` raw descriptor -> the indices ``(count,)`` of the most similar reference images, most similar
+        first."""
         q = _normalise_rows(np.atleast_2d(query) - self._mean).astype(np.float32)[0]
         similarity = self._centred @ q
         top = np.argpartition(-similarity, count - 1)[:count] if count < len(similarity) else np.arange(len(similarity))
@@ -143,7 +144,8 @@ class ReferenceSet:
 
 
 def reference_of(checkpoint: str | Path) -> Path:
-    """Where the reference set of a checkpoint's training images lives: ``NAME.reference.npz`` beside ``NAME.safetensors``."""
+    """Where the reference set of a checkpoint's training images lives: ``NAME.reference.npz`` beside
+    ``NAME.safetensors``."""
     p = Path(checkpoint)
     return p.with_name(p.name.removesuffix(".safetensors") + ".reference.npz")
 

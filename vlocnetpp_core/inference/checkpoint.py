@@ -296,7 +296,8 @@ def resolve_map_path(checkpoint: str | Path, value: str | Path | None, what: str
             return path
         if warn is not None and weights.is_file():
             warn(
-                f"{what} '{MAP_AUTO}': no keyframe map beside the checkpoint ({path} is missing): running without refinement "
+                f"{what} '{MAP_AUTO}': no keyframe map beside the checkpoint "
+                f"({path} is missing): running without refinement "
                 "(build one with 'vlocnetpp map build')"
             )
         return None

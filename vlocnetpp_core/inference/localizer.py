@@ -175,7 +175,8 @@ class Localizer:
     @property
     def has_segmentation(self) -> bool:
         """Whether the loaded model produces a class-id mask (:attr:`LocalizerResult.mask` not None): its config
-        runs ``seg`` (the rule replay's ``checkpoint_output_types`` reads too). False for a pose-only model (``lite_pose``)."""
+        runs ``seg`` (the rule replay's ``checkpoint_output_types`` reads too). False for a pose-only model
+        (``lite_pose``)."""
         return "seg" in self.model.config.tasks
 
     def reset(self, reason: str = "request", clear_odometry: bool = False) -> None:

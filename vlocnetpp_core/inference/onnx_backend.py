@@ -79,10 +79,12 @@ class OnnxStep:
         K: torch.Tensor | None = None,
         depth: torch.Tensor | None = None,
     ) -> tuple[StepOutput, StreamState]:
-        """``image (1, 3, H, W)`` in [0, 1], ``K (1, 3, 3)``, ``depth (1, 1, H, W)`` metres or None -> heads and next state."""
+        """``image (1, 3, H, W)`` in [0, 1], ``K (1, 3, 3)``, ``depth (1, 1, H, W)`` metres or None -> heads and next
+        state."""
         if tuple(image.shape) != (1, 3, self.input_size[1], self.input_size[0]):
             raise ValueError(
-                f"{self.path} takes one (1, 3, {self.input_size[1]}, {self.input_size[0]}) image, got {tuple(image.shape)}"
+                f"{self.path} takes one (1, 3, {self.input_size[1]}, "
+                f"{self.input_size[0]}) image, got {tuple(image.shape)}"
             )
         if K is None:
             raise ValueError("K (1, 3, 3), the intrinsics at the network input size, is required")

@@ -108,7 +108,8 @@ def check_raw(
     if size > step * height:
         raise FrameError(
             "data_size_mismatch",
-            f"{encoding} image {width}x{height}, step {step}: {size} data bytes, expected {step * height} (wrong width/height?)",
+            f"{encoding} image {width}x{height}, step {step}: "
+            f"{size} data bytes, expected {step * height} (wrong width/height?)",
         )
     return channels, dtype, row
 

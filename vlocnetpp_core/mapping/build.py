@@ -11,7 +11,8 @@ keyframe's SIFT keypoints (:mod:`.features`) become map points:
   known: matched keypoints kept where both reprojection errors are under 2 px, the point lies in front of both
   cameras, and the rays meet at an angle of at least 1 deg.
 
-Where the dataset has labels, keypoints on moving objects (class ``Dynamic``, :func:`.features.off_dynamic`) are left out.
+Where the dataset has labels, keypoints on moving objects (class ``Dynamic``, :func:`.features.off_dynamic`) are left
+out.
 """
 
 from __future__ import annotations
@@ -169,7 +170,8 @@ def _static_features(extractor: FeatureExtractor, frame) -> Features:
 
 
 def _points_of(frames: list, found: list[Features], j: int, ratio: float) -> tuple[np.ndarray, np.ndarray]:
-    """Keypoints of keyframe ``j`` of a sequence that become map points, and the points: from depth, else triangulated."""
+    """Keypoints of keyframe ``j`` of a sequence that become map points, and the points: from depth, else
+    triangulated."""
     f = frames[j]
     K = f.intrinsics.matrix()
     if f.depth is not None:

@@ -167,7 +167,8 @@ def _info(args: argparse.Namespace) -> int:
     lo, hi = m.t.min(axis=0), m.t.max(axis=0)
     print(f"{args.map}: {len(m)} keyframes, {m.num_points} points ({m.num_points / len(m):.0f} a keyframe)")
     print(
-        f"  keyframe positions: x {lo[0]:.1f}..{hi[0]:.1f} m, y {lo[1]:.1f}..{hi[1]:.1f} m, z {lo[2]:.1f}..{hi[2]:.1f} m"
+        f"  keyframe positions: x {lo[0]:.1f}..{hi[0]:.1f} m, "
+        f"y {lo[1]:.1f}..{hi[1]:.1f} m, z {lo[2]:.1f}..{hi[2]:.1f} m"
     )
     print(f"  features: {m.features.to_dict()}")
     print(f"  source: {m.source}")

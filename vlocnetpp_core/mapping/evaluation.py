@@ -48,8 +48,8 @@ class RefinedTrack:
 
 
 def with_poses(results: Sequence, poses: Sequence[tuple[np.ndarray, np.ndarray]]) -> list:
-    """``results`` (``SequenceResult``s) with ``poses[k] = (t (N_k, 3), q (N_k, 4))`` as the prediction, and no odometry,
-    segmentation or timing: what the pose metrics of another localizer on the same frames need."""
+    """``results`` (``SequenceResult``s) with ``poses[k] = (t (N_k, 3), q (N_k, 4))`` as the prediction, and no
+    odometry, segmentation or timing: what the pose metrics of another localizer on the same frames need."""
     out = []
     for r, (t, q) in zip(results, poses, strict=True):
         if len(t) != len(r.stamps):

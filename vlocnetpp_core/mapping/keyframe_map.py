@@ -7,8 +7,8 @@ named errors. Arrays (``K`` keyframes, ``N`` features in all, keyframe ``k`` own
   ``image_sizes (K, 2)``: ``W, H`` of its image;
 * ``uv (N, 2) float32`` keypoints in the keyframe's image, ``points (N, 3) float32`` their positions in the
   map frame (metres), ``descriptors (N, 128) uint8`` (:mod:`.features`);
-* ``thumbnails (K, 288)``: the keyframe images' retrieval descriptors (:func:`vlocnetpp_core.evaluation.retrieval.describe`),
-  which the structure-based baseline ranks keyframes by;
+* ``thumbnails (K, 288)``: the keyframe images' retrieval descriptors
+  (:func:`vlocnetpp_core.evaluation.retrieval.describe`), which the structure-based baseline ranks keyframes by;
 * ``meta``: JSON with the format version, the feature settings and the source datasets.
 """
 

@@ -94,9 +94,9 @@ class Refiner:
         return self._extractor(grey)
 
     def prepare(self, image: np.ndarray, intrinsics) -> tuple[np.ndarray, np.ndarray]:
-        """``(grey, K)``: an ``(H, W, 3)`` RGB / ``(H, W)`` image with its :class:`~vlocnetpp_core.camera.intrinsics.Intrinsics`
-        as grey, shrunk to the width of the map's keyframes where it is wider (features cost less, match alike), and
-        its ``K (3, 3)`` at that size."""
+        """``(grey, K)``: an ``(H, W, 3)`` RGB / ``(H, W)`` image with its
+        :class:`~vlocnetpp_core.camera.intrinsics.Intrinsics` as grey, shrunk to the width of the map's keyframes where
+        it is wider (features cost less, match alike), and its ``K (3, 3)`` at that size."""
         import cv2
 
         h, w = image.shape[:2]
@@ -177,8 +177,8 @@ class Refiner:
     def locate_image(
         self, image: np.ndarray, intrinsics, thumbnail: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, Refinement]:
-        """:meth:`locate` of an ``(H, W, 3)`` RGB image with its :class:`~vlocnetpp_core.camera.intrinsics.Intrinsics` and
-        retrieval descriptor ``thumbnail (288,)`` (:func:`vlocnetpp_core.evaluation.retrieval.describe` of it)."""
+        """:meth:`locate` of an ``(H, W, 3)`` RGB image with its :class:`~vlocnetpp_core.camera.intrinsics.Intrinsics`
+        and retrieval descriptor ``thumbnail (288,)`` (:func:`vlocnetpp_core.evaluation.retrieval.describe` of it)."""
         grey, K = self.prepare(image, intrinsics)
         return self.locate(self.extract(grey), thumbnail, K)
 

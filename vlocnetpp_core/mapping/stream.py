@@ -1,4 +1,5 @@
-"""Refinement over a stream of frames: what the :class:`~vlocnetpp_core.inference.localizer.Localizer` calls around the network.
+"""Refinement over a stream of frames: what the :class:`~vlocnetpp_core.inference.localizer.Localizer` calls around the
+network.
 
 Per frame, :meth:`RefinedStream.start` (before the network runs) begins the frame's feature extraction on a
 worker thread, so that SIFT and the network share the cores, and there matches the features with the keyframes
@@ -67,7 +68,8 @@ class RefinedStream:
         self._guess: tuple[np.ndarray, np.ndarray] | None = None  # where the next frame is expected: t, q
 
     def start(self, image: np.ndarray, intrinsics) -> None:
-        """Begin the frame ``image`` (``(H, W, 3)`` RGB) with its :class:`~vlocnetpp_core.camera.intrinsics.Intrinsics`."""
+        """Begin the frame ``image`` (``(H, W, 3)`` RGB) with its
+        :class:`~vlocnetpp_core.camera.intrinsics.Intrinsics`."""
         self.cancel()
         if self._anchor is not None and (self._steps + 1) % self.refine_every != 0:
             return  # propagated frame

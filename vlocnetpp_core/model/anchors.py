@@ -10,7 +10,8 @@ from vlocnetpp_core.geometry import quat_normalize
 
 
 def kmeans_anchors(positions: np.ndarray, count: int, seed: int = 0) -> np.ndarray:
-    """``count`` anchor points ``(count, D)`` from training points ``(M, D)`` (positions: ``D = 3``, metres, world frame).
+    """``count`` anchor points ``(count, D)`` from training points ``(M, D)`` (positions: ``D = 3``, metres, world
+    frame).
 
     The k-means centres of the positions (k-means++ start, ``seed`` fixes the result). With fewer
     distinct positions than ``count`` (a tiny dataset) every distinct position is an anchor and the

@@ -7,9 +7,10 @@ checkpoint of stage ``source`` follows:
 
 * ``"whole"`` (the default): every tensor whose name exists in the run's network;
 * ``"streams"`` (``mtl`` from several checkpoints): each stream from the checkpoint of the stage that
-  trains it (:data:`STREAM_SOURCE`, the single-task stage whose ``streams`` hold it); an ``mtl`` checkpoint among them (an assembled or multitask network)
-  gives every stream, and a later single-task one replaces its own (e.g. the shipped model with a
-  retrained odometry stream: ``--init models/vlocnetpp_lite.safetensors --init runs/stl-vo/best.safetensors``);
+  trains it (:data:`STREAM_SOURCE`, the single-task stage whose ``streams`` hold it); an ``mtl`` checkpoint among them
+  (an assembled or multitask network) gives every stream, and a later single-task one replaces its own (e.g. the shipped
+  model with a retrained odometry stream:
+  ``--init models/vlocnetpp_lite.safetensors --init runs/stl-vo/best.safetensors``);
 * ``"trunk"`` (one pose stage on the other: ``stl-loc`` on ``stl-vo``, ``stl-vo`` on ``stl-loc``): only
   the shared trunk, kept frozen (weights and BatchNorm statistics) so ``mtl`` can combine the two
   pose streams; the other stream is not carried (its head may differ, e.g. the global stream's with
@@ -47,7 +48,8 @@ def init_rule(run: str, source: str | None, n_inits: int) -> str:
 def init_tensors(
     rule: str, source: str | None, tensors: dict[str, torch.Tensor], own: dict[str, torch.Tensor]
 ) -> dict[str, torch.Tensor]:
-    """The tensors of a checkpoint (of stage ``source``) that ``rule`` loads into a network whose state dict is ``own``."""
+    """The tensors of a checkpoint (of stage ``source``) that ``rule`` loads into a network whose state dict is
+    ``own``."""
     if rule == "encoder":
         return semantic_encoder_as_global_stream(tensors, own)
     if rule == "trunk":
@@ -63,15 +65,17 @@ def init_tensors(
 
 def frozen_trunk(run: str, sources: list[str | None]) -> bool:
     """Whether a run keeps the shared trunk frozen: one pose stream trained on top of the other's trunk
-    (``stl-vo`` initialised from anything: ``init_freezes_trunk``; ``stl-loc`` on an ``stl-vo`` trunk: a ``"trunk"`` rule)."""
+    (``stl-vo`` initialised from anything: ``init_freezes_trunk``; ``stl-loc`` on an ``stl-vo`` trunk: a ``"trunk"``
+    rule)."""
     if stage_spec(run).init_freezes_trunk and sources:
         return True
     return any(init_rule(run, s, len(sources)) == "trunk" for s in sources)
 
 
 def builds_semantic_fusion(stage: str, steps: int | None) -> bool:
-    """Only a stage that trains the ``fusion`` stream (``mtl``) learns the Res4c AWF: every other run (and ``mtl --steps 0``,
-    which assembles the stages) is built without it (a plain untrained AWF ends in a ReLU that clips the global stream)."""
+    """Only a stage that trains the ``fusion`` stream (``mtl``) learns the Res4c AWF: every other run (and
+    ``mtl --steps 0``, which assembles the stages) is built without it (a plain untrained AWF ends in a ReLU that clips
+    the global stream)."""
     return "fusion" in stage_spec(stage).streams and steps != 0
 
 

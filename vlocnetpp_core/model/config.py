@@ -269,7 +269,8 @@ def _config_path(text: str, next_to: Path | None = None) -> Path:
 
 
 def _config_keys(path: Path, chain: tuple[Path, ...]) -> dict[str, Any]:
-    """The keys of the YAML file ``path`` over those of its ``base`` (a built-in name or a file relative to it), and so on."""
+    """The keys of the YAML file ``path`` over those of its ``base`` (a built-in name or a file relative to it), and so
+    on."""
     if path.resolve() in chain:
         raise DataError(path, "'base' loops back: " + " -> ".join(str(p) for p in (*chain, path.resolve())))
     try:

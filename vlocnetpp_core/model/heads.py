@@ -83,7 +83,8 @@ class PoseHead(nn.Module):
         self._set_anchor_buffer("anchor_quat", self.fc_rotation_anchor, quats, "rotation")
 
     def _set_anchor_buffer(self, name: str, scorer: nn.Linear | None, values: torch.Tensor, kind: str) -> None:
-        """Copy ``values`` into the anchor buffer ``name`` (scored by ``scorer``); ``ValueError`` naming the count built."""
+        """Copy ``values`` into the anchor buffer ``name`` (scored by ``scorer``); ``ValueError`` naming the count
+        built."""
         if scorer is None or tuple(values.shape) != tuple(getattr(self, name).shape):
             have = 0 if scorer is None else scorer.out_features
             raise ValueError(f"this pose head has {have} {kind} anchors, got anchors of shape {tuple(values.shape)}")

@@ -94,7 +94,8 @@ def _global_stream_line(g: dict[str, Any]) -> str:
     quat = (
         "fc3 regresses the rotation (the paper)"
         if not g["rotation_anchors"]
-        else f"the rotation is {g['rotation_anchors']} scored anchor rotations each turned by a residual (a departure from the paper)"
+        else f"the rotation is {g['rotation_anchors']} scored anchor "
+        "rotations each turned by a residual (a departure from the paper)"
     )
     return f"global stream: reads the trunk's Res3 map {res3}; its {w}x{h} Res5c map is {head} into fc1; {xyz}; {quat}"
 

@@ -85,7 +85,8 @@ def backbone_copies(model: nn.Module) -> dict[str, dict[str, nn.Module]]:
 
 
 def read_state_dict(path: str | Path) -> dict[str, torch.Tensor]:
-    """Tensors of a safetensors or weights-only torch file; a nested ``state_dict`` / ``model`` and ``module.`` prefixes are unwrapped."""
+    """Tensors of a safetensors or weights-only torch file; a nested ``state_dict`` / ``model`` and ``module.`` prefixes
+    are unwrapped."""
     path = Path(path)
     if not path.is_file():
         raise DataError(path, "no such file")
@@ -111,7 +112,8 @@ def read_state_dict(path: str | Path) -> dict[str, torch.Tensor]:
 
 
 def _targets(key: str, parts: dict[str, nn.Module]) -> tuple[list[tuple[nn.Module, str, slice | None]], str | None]:
-    """Where a torchvision key goes in one backbone copy: ``[(module, local name, output-channel slice)]`` or a skip reason."""
+    """Where a torchvision key goes in one backbone copy: ``[(module, local name, output-channel slice)]`` or a skip
+    reason."""
     if key.startswith("fc."):
         return [], "classifier (fc), the pose heads differ"
     if key.endswith(".num_batches_tracked"):

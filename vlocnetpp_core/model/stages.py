@@ -107,7 +107,8 @@ PARTS = tuple(_PREFIX_STREAM)  # the network's top-level modules, which ``vlocne
 
 
 def part_of(name: str) -> str:
-    """Top-level module (one of :data:`PARTS`) of a parameter or buffer name (``"trunk.res3.0.conv1.weight"`` -> ``"trunk"``)."""
+    """Top-level module (one of :data:`PARTS`) of a parameter or buffer name (``"trunk.res3.0.conv1.weight"`` ->
+    ``"trunk"``)."""
     part = name.removeprefix("module.").split(".", 1)[0]
     if part not in _PREFIX_STREAM:
         raise KeyError(f"{name!r} is not a VLocNetPP parameter name")
@@ -142,7 +143,8 @@ def stage_tasks(stage: str, model_tasks: Iterable[str] = TASKS) -> tuple[str, ..
 
 
 def is_trained_in(name: str, stage: str) -> bool:
-    """Whether ``stage`` trains the parameter ``name``: the trunk by its ``trains_trunk``, the rest by its ``streams``."""
+    """Whether ``stage`` trains the parameter ``name``: the trunk by its ``trains_trunk``, the rest by its
+    ``streams``."""
     spec = stage_spec(stage)
     if part_of(name) == "trunk":
         return spec.trains_trunk
@@ -150,7 +152,8 @@ def is_trained_in(name: str, stage: str) -> bool:
 
 
 def trainable_parameters(model: nn.Module, stage: str, frozen: Iterable[str] = ()) -> Iterator[nn.Parameter]:
-    """The parameters of ``model`` that ``stage`` trains (see the module docstring), less those of the ``frozen`` parts (:data:`PARTS`)."""
+    """The parameters of ``model`` that ``stage`` trains (see the module docstring), less those of the ``frozen`` parts
+    (:data:`PARTS`)."""
     stage_spec(stage)
     frozen = set(frozen)
     return (p for name, p in model.named_parameters() if is_trained_in(name, stage) and part_of(name) not in frozen)

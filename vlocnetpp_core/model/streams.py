@@ -14,7 +14,8 @@ from vlocnetpp_core.model.heads import PoseHead, SegmentationDecoder
 
 
 class Trunk(nn.Module):
-    """Stem, Res2, Res3 shared by the global stream and the odometry I_t stream: ``(B, 3, H, W) -> (B, C3, H/8, W/8)``."""
+    """Stem, Res2, Res3 shared by the global stream and the odometry I_t stream:
+    ``(B, 3, H, W) -> (B, C3, H/8, W/8)``."""
 
     def __init__(self, cfg: ModelConfig):
         super().__init__()

@@ -151,7 +151,8 @@ class VLocNetPP(nn.Module):
 
     @property
     def memory_format(self) -> torch.memory_format:
-        """``torch.channels_last`` or ``torch.contiguous_format``: the layout of the weights, which the input follows."""
+        """``torch.channels_last`` or ``torch.contiguous_format``: the layout of the weights, which the input
+        follows."""
         weight = self.trunk.stem.conv.weight
         return (
             torch.channels_last if weight.is_contiguous(memory_format=torch.channels_last) else torch.contiguous_format
@@ -169,7 +170,8 @@ class VLocNetPP(nn.Module):
         tasks: Iterable[str] | None = None,
     ) -> tuple[StepOutput, StreamState]:
         """One frame. ``state=None`` is a first frame: every fusion with the previous frame uses
-        the current frame's own features (a static camera); odometry outputs are then meaningless (the identity in training).
+        the current frame's own features (a static camera); odometry outputs are then meaningless (the identity in
+        training).
 
         Args:
             image: ``(B, 3, H, W)`` RGB in ``[0, 1]``.
@@ -288,8 +290,8 @@ class VLocNetPP(nn.Module):
             out.anchor_quat = g.head.anchor_quat
 
     def global_pool(self, x: torch.Tensor) -> torch.Tensor:
-        """``(B, C, h, w) -> (B, C, ceil(h/p), ceil(w/p))``: average pooling by ``config.global_downsample`` (``p``), for
-        the trunk's Res3 map entering the global stream and the semantic Res5c map fused into its Res4c."""
+        """``(B, C, h, w) -> (B, C, ceil(h/p), ceil(w/p))``: average pooling by ``config.global_downsample`` (``p``),
+        for the trunk's Res3 map entering the global stream and the semantic Res5c map fused into its Res4c."""
         f = self.config.global_downsample
         return x if f == 1 else F.avg_pool2d(x, f, ceil_mode=True)
 
@@ -302,7 +304,8 @@ class VLocNetPP(nn.Module):
         name: str,
         taps: dict[str, torch.Tensor],
     ) -> torch.Tensor:
-        """AWF of ``current`` with the previous frame's features warped into this view (own features on a first frame)."""
+        """AWF of ``current`` with the previous frame's features warped into this view (own features on a first
+        frame)."""
         if previous is None:
             warped = current
         else:
@@ -368,7 +371,8 @@ class VLocNetPP(nn.Module):
 
 
 class _Warper:
-    """Warps previous-frame features into the current view; one float32 input-resolution grid, pooled per feature size."""
+    """Warps previous-frame features into the current view; one float32 input-resolution grid, pooled per feature
+    size."""
 
     def __init__(self, depth: torch.Tensor, T_rel: torch.Tensor, K: torch.Tensor):
         dtype = torch.promote_types(

@@ -348,7 +348,8 @@ class Campus(Buildings, StreetFurniture, GroundColour):
 
     # ================================================================= lighting
     def sky_panorama(self, lighting: Lighting) -> np.ndarray:
-        """Sky colour ``(256, 2048, 3)`` uint8 RGB over elevation (rows, 0 to 90 deg) and azimuth (columns, 0 to 360 deg)."""
+        """Sky colour ``(256, 2048, 3)`` uint8 RGB over elevation (rows, 0 to 90 deg) and azimuth (columns, 0 to 360
+        deg)."""
 
         def make():
             rows, cols = self.clouds.shape

@@ -1,4 +1,5 @@
-"""The colour of the campus ground: albedo, patterns and road markings, and the shadows of the static scene per lighting."""
+"""The colour of the campus ground: albedo, patterns and road markings, and the shadows of the static scene per
+lighting."""
 
 from __future__ import annotations
 

@@ -54,7 +54,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=float,
         default=None,
         metavar="SECONDS",
-        help="time between frames, e.g. 0.05 for 20 Hz video (default: spread each loop's frames over one lap, ~1 m apart)",
+        help="time between frames, e.g. 0.05 for 20 Hz video (default: "
+        "spread each loop's frames over one lap, ~1 m apart)",
     )
     parser.add_argument(
         "--test-lane-offset",

@@ -120,7 +120,8 @@ def _smooth_noise_1d(rng: np.random.Generator, x: np.ndarray, scales: tuple[floa
 
 
 def choose_pattern(rng: np.random.Generator, split: str, loop: int, combo_offset: int) -> DrivingPattern:
-    """Train loops cycle through the four circuit/direction combinations (and the lighting presets); test loops pick at random."""
+    """Train loops cycle through the four circuit/direction combinations (and the lighting presets); test loops pick at
+    random."""
     if split == "train":
         circuit, cw = COMBOS[(loop + combo_offset) % len(COMBOS)]
     else:

@@ -74,7 +74,8 @@ class GroundMap:
         return x, y
 
     def paint_albedo(self, rng: np.random.Generator, base: dict[int, tuple[int, float, float]], patterns) -> None:
-        """Albedo from class ids: ``base[label] = (colour, fine grain, blotches)``; ``patterns(albedo)`` adds markings."""
+        """Albedo from class ids: ``base[label] = (colour, fine grain, blotches)``; ``patterns(albedo)`` adds
+        markings."""
         lut = np.zeros((256, 3), np.float32)
         fine = np.zeros(256, np.float32)
         coarse = np.zeros(256, np.float32)

@@ -1,4 +1,5 @@
-"""The campus's fixed dimensions, the class ids of the synthetic scene and the sizes and colours of its moving things."""
+"""The campus's fixed dimensions, the class ids of the synthetic scene and the sizes and colours of its moving
+things."""
 
 from __future__ import annotations
 

@@ -48,7 +48,8 @@ def mosaic(samples: list[tuple[str, np.ndarray, np.ndarray, np.ndarray]], tile_w
 def top_down_map(
     campus: Campus, trajectories: list[tuple[str, str, np.ndarray]], scale: float = 0.2, margin: float = 12.0
 ) -> np.ndarray:
-    """North-up map (RGB) of the campus with ``(split, name, xy (N, 2))`` trajectories, 2 pixels per ``scale`` metres."""
+    """North-up map (RGB) of the campus with ``(split, name, xy (N, 2))`` trajectories, 2 pixels per ``scale``
+    metres."""
     g = campus.ground
     level = min(max(int(round(math.log2(scale / RES))), 0), len(g.mips) - 1)
     s = RES * 2**level

@@ -71,7 +71,8 @@ def render_frame(
         raise ValueError(f"camera height must be above the ground, got z = {t[2]:.3f} m")
     if math.hypot(t[0] - campus.center[0], t[1] - campus.center[1]) > HILLS_RADIUS - 20:
         raise ValueError(
-            f"camera at ({t[0]:.1f}, {t[1]:.1f}) is outside the rendered world (within {HILLS_RADIUS - 20:.0f} m of the campus)"
+            f"camera at ({t[0]:.1f}, {t[1]:.1f}) is outside the rendered world "
+            f"(within {HILLS_RADIUS - 20:.0f} m of the campus)"
         )
     W, H = intrinsics.width, intrinsics.height
     fx, fy, cx, cy = intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy

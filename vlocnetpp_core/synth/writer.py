@@ -114,7 +114,8 @@ def render_dataset(
         math.isfinite(test_lane_offset) and abs(test_lane_offset) <= MAX_LANE_OFFSET_M
     ):
         raise UserError(
-            f"--test-lane-offset must be within +-{MAX_LANE_OFFSET_M:g} m of the centreline (the sidewalks), got {test_lane_offset}"
+            f"--test-lane-offset must be within +-{MAX_LANE_OFFSET_M:g} m "
+            f"of the centreline (the sidewalks), got {test_lane_offset}"
         )
     out = Path(out)
     with atomic_output_dir(out, force) as tmp:

@@ -43,9 +43,9 @@ def flag(key: str) -> str:
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """One training run (docs/training.md has every flag). ``steps``/``epochs`` None: 30 epochs; ``lr`` None: the stage's
-    default rate (with ``resume``: the run's); ``crop_scale`` None: the stage's default; ``val_every`` 0: at the last step
-    only; ``device`` None: cuda if present."""
+    """One training run (docs/training.md has every flag). ``steps``/``epochs`` None: 30 epochs; ``lr`` None: the
+    stage's default rate (with ``resume``: the run's); ``crop_scale`` None: the stage's default; ``val_every`` 0: at the
+    last step only; ``device`` None: cuda if present."""
 
     config: str
     data: str
@@ -91,7 +91,8 @@ class TrainConfig:
 
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> TrainConfig:
-        """A config from a mapping of field names (a JSON file, a recipe stage); ``ConfigError`` naming an unknown key."""
+        """A config from a mapping of field names (a JSON file, a recipe stage); ``ConfigError`` naming an unknown
+        key."""
         unknown = sorted(set(values) - set(cls.keys()))
         if unknown:
             raise ConfigError(

@@ -3,8 +3,8 @@
 Per clip of ``T`` frames (``outputs[t]`` are :class:`~vlocnetpp_core.model.StepOutput`):
 
 * ``loc`` (Eq. 3): ``L_Euc + L_Rel`` as ``(L_x + L_x_rel) e^{-s_x} + s_x + (L_q + L_q_rel) e^{-s_q} + s_q`` with
-  ``L_x = ||x_t - x^_t||``, ``L_q = ||q_t - q^_t||`` (the nearer of ``q^`` and ``-q^``) over every frame; ``L_Rel`` (geometric
-  consistency) compares the relative pose of the predicted global poses of frames t-1 and t,
+  ``L_x = ||x_t - x^_t||``, ``L_q = ||q_t - q^_t||`` (the nearer of ``q^`` and ``-q^``) over every frame; ``L_Rel``
+  (geometric consistency) compares the relative pose of the predicted global poses of frames t-1 and t,
   ``T^_{t-1}^{-1} T^_t`` (SE(3) form, docs/conventions.md, Relative pose), with the ground-truth ``rel_t, rel_q``
   over frames ``1..T-1``. **Departure from the paper**, which gives ``L_Rel`` weights of its own
   (``s_x_rel``, ``s_q_rel``): a learned weight tends to ``1 / L``, so the consistency errors, small on
@@ -22,8 +22,8 @@ Per clip of ``T`` frames (``outputs[t]`` are :class:`~vlocnetpp_core.model.StepO
 * ``depth``: L1 between log depths over pixels with ground-truth depth ``> 0`` (finite), on the
   depth head that warping uses; it belongs to the ``seg`` task (``stl-seg`` trains the head).
 
-All ``s_x`` are initialised to 0 and all ``s_q`` to -3 (paper; ``s_q_init`` changes the latter). With several tasks (``mtl``)
-the learned multitask weighting of Eq. 6 applies: ``L e^{-s} + s`` per task. For ``loc`` and
+All ``s_x`` are initialised to 0 and all ``s_q`` to -3 (paper; ``s_q_init`` changes the latter). With several tasks
+(``mtl``) the learned multitask weighting of Eq. 6 applies: ``L e^{-s} + s`` per task. For ``loc`` and
 ``vo`` the task weight of Eq. 6 is folded into their component weights (``e^{-s_loc} e^{-s_x}``
 is one free weight): multiplying a loss that already holds learned weights by ``e^{-s_loc}``
 makes the objective unbounded below as soon as the task loss turns negative, which happens
@@ -53,7 +53,8 @@ S_X_INIT = 0.0
 def pose_errors(
     xyz: torch.Tensor, quat: torch.Tensor, t: torch.Tensor, q: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Mean ``||t - xyz||_2`` and ``min(||q - quat||_2, ||q + quat||_2)`` over the batch: ``(..., 3)``, ``(..., 4)`` -> two scalars.
+    """Mean ``||t - xyz||_2`` and ``min(||q - quat||_2, ||q + quat||_2)`` over the batch: ``(..., 3)``, ``(..., 4)`` ->
+    two scalars.
 
     ``q`` and ``-q`` are the same rotation. Canonical ``w >= 0`` quaternions jump to the other sign
     where ``w`` crosses 0 (a camera driving a loop passes such a heading every lap), so the plain
@@ -92,7 +93,8 @@ def weighted(loss: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
 
 
 def segmentation_loss(logits: torch.Tensor, labels: torch.Tensor) -> tuple[torch.Tensor, int]:
-    """Summed cross-entropy of ``logits (B, C, H, W)`` vs ``labels (B, H, W)`` (255 ignored), and the labelled pixel count."""
+    """Summed cross-entropy of ``logits (B, C, H, W)`` vs ``labels (B, H, W)`` (255 ignored), and the labelled pixel
+    count."""
     labels = labels.long()
     if labels.shape[-2:] != logits.shape[-2:]:
         raise ValueError(f"labels {tuple(labels.shape)} do not match the logits {tuple(logits.shape)}")
@@ -102,7 +104,8 @@ def segmentation_loss(logits: torch.Tensor, labels: torch.Tensor) -> tuple[torch
 
 
 def depth_loss(pred: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, int]:
-    """Summed ``|log pred - log target|`` over valid pixels (target ``> 0`` and finite), and their count; ``(B, 1, H, W)``."""
+    """Summed ``|log pred - log target|`` over valid pixels (target ``> 0`` and finite), and their count;
+    ``(B, 1, H, W)``."""
     if pred.shape != target.shape:
         raise ValueError(f"depth target {tuple(target.shape)} does not match the prediction {tuple(pred.shape)}")
     target = target.to(pred.dtype)

@@ -11,7 +11,8 @@ weights. Example (``config/recipes/shipped.yaml`` is the shipped model's)::
     defaults: {data: campus, batch_size: 8, clip_len: 3}
     stages:
       - {name: stl-vo, stage: stl-vo, schedule: [{steps: 1500, lr: 1.0e-3}]}
-      - {name: stl-loc, stage: stl-loc, init: [stl-vo], schedule: [{steps: 6000, lr: 1.0e-3}, {steps: 8000, lr: 1.0e-4}]}
+      - {name: stl-loc, stage: stl-loc, init: [stl-vo],
+         schedule: [{steps: 6000, lr: 1.0e-3}, {steps: 8000, lr: 1.0e-4}]}
     export: {stage: stl-loc, to: models/my_model, dtype: float16, reference: campus}
 
 Stage keys: ``name`` (run folder), ``stage``, ``schedule`` (list of ``{steps, lr}``: train to
@@ -154,7 +155,8 @@ def _known(entry: dict, known, where: str, refused=()) -> None:
             )
         if key not in known:
             raise UserError(
-                f"{where}: unknown key '{key}' (known: {', '.join(dict.fromkeys(k for k in known if k not in refused))})"
+                f"{where}: unknown key '{key}' (known: "
+                f"{', '.join(dict.fromkeys(k for k in known if k not in refused))})"
             )
 
 
@@ -304,7 +306,8 @@ def stage_step(run_dir: Path) -> int:
 
 
 def stage_weights(recipe: Recipe, name: str, out: Path) -> Path:
-    """``OUT/NAME/best`` or ``OUT/NAME/last`` (the stage's ``weights``): the checkpoint (without suffix) that later stages take."""
+    """``OUT/NAME/best`` or ``OUT/NAME/last`` (the stage's ``weights``): the checkpoint (without suffix) that later
+    stages take."""
     stage = next((s for s in recipe.stages if s.name == name), None)
     if stage is None:
         raise UserError(f"{recipe.path}: '{name}' is not one of the stages")

@@ -56,7 +56,8 @@ def export_weights(recipe, out: Path) -> Path:
 
 
 def _stage_calibration(recipe, out: Path, stages: dict) -> dict:
-    """Pose variances from the sidecar of ``stages['pose']``'s weights (``best`` or ``last``), odometry variances from ``stages['odometry']``'s."""
+    """Pose variances from the sidecar of ``stages['pose']``'s weights (``best`` or ``last``), odometry variances from
+    ``stages['odometry']``'s."""
     from vlocnetpp_core.training.recipe import stage_weights
 
     parts = {}

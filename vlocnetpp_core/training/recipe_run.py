@@ -76,7 +76,8 @@ class Job:
 
 
 def recipe_jobs(recipe: Recipe, out: Path, python: str = sys.executable) -> list[Job]:
-    """The recipe's jobs in the order they are considered: datasets (those of the earliest stages first), then stages."""
+    """The recipe's jobs in the order they are considered: datasets (those of the earliest stages first), then
+    stages."""
     first_use = {}
     for k, stage in enumerate(recipe.stages):
         for name in stage_datasets(stage):

@@ -6,15 +6,16 @@ warping, plus the depth head that warping needs; the warp uses the ground-truth 
 because the odometry stream is not trained in this stage), and ``mtl`` (everything, learned task
 weighting of Eq. 6, initialised from the single-task checkpoints at the lower learning rate).
 A pose-only config (``semantic_stream: false``, e.g. ``lite_pose``) trains ``stl-loc``, ``stl-vo``
-and ``mtl`` (= ``loc`` + ``vo``) and refuses ``stl-seg``. Adam(0.9, 0.999, 1e-10), lr 1e-3 for single-task stages and 1e-4 for MTL, batch 32 by default.
+and ``mtl`` (= ``loc`` + ``vo``) and refuses ``stl-seg``. Adam(0.9, 0.999, 1e-10), lr 1e-3 for single-task stages and
+1e-4 for MTL, batch 32 by default.
 
 Every step unrolls clips of ``--clip-len`` frames through ``model.forward_clip``, so the
 previous-frame features the network fuses come from its own previous step (never from ground
 truth). Run folder (``--out``): ``last.safetensors/.json`` and ``best.safetensors/.json``
 checkpoints (inference sidecar with calibration; ``best`` has the lowest validation
 :func:`~vlocnetpp_core.training.losses.selection_score`: the raw pose, odometry and segmentation errors
-relative to the first validation, not the loss with its moving learned weights), ``train_state.*`` (optimiser, loss weights,
-RNG, step) for ``--resume``, ``log.jsonl`` (every loss and the learning rate per step, and each
+relative to the first validation, not the loss with its moving learned weights), ``train_state.*`` (optimiser, loss
+weights, RNG, step) for ``--resume``, ``log.jsonl`` (every loss and the learning rate per step, and each
 validation), all written atomically.
 
 Distributed: ``torchrun --nproc-per-node N -m vlocnetpp_core.training.train --config ... --data ...``
@@ -46,7 +47,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--recipe",
         metavar="FILE",
         help="run a whole declarative schedule (datasets, stages, export; e.g. "
-        "config/recipes/shipped.yaml) into --out, resumably; the other flags then come from the file (docs/training.md)",
+        "config/recipes/shipped.yaml) into --out, resumably; the other flags then come from the file "
+        "(docs/training.md)",
     )
     p.add_argument(
         "--train-config",
@@ -69,8 +71,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         action="append",
         default=[],
         metavar="CHECKPOINT",
-        help="initialise from a checkpoint (a later one wins where they overlap); for mtl give each single-task checkpoint (each stream comes from its stage); "
-        "for stl-loc an stl-seg checkpoint gives its encoder as the pre-trained backbone, an stl-vo checkpoint its trunk, kept frozen",
+        help="initialise from a checkpoint (a later one wins where they overlap); "
+        "for mtl give each single-task checkpoint (each stream comes from its stage); "
+        "for stl-loc an stl-seg checkpoint gives its encoder as the pre-trained backbone, "
+        "an stl-vo checkpoint its trunk, kept frozen",
     )
     p.add_argument(
         "--init-backbone",
@@ -84,7 +88,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         metavar="PART[,PART...]",
         help=f"keep these parts of the network as they are, weights and BatchNorm statistics ({', '.join(PARTS)}); "
         "e.g. mtl that trains only the global stream with its Res4c semantic fusion: "
-        "--freeze trunk,odometry,semantic,depth_head (default: none; a pose stage on the other's trunk freezes the trunk)",
+        "--freeze trunk,odometry,semantic,depth_head (default: "
+        "none; a pose stage on the other's trunk freezes the trunk)",
     )
     again = p.add_mutually_exclusive_group()
     again.add_argument("--resume", action="store_true", help="continue the run in --out exactly where it stopped")
@@ -215,7 +220,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def train_config(args: argparse.Namespace) -> TrainConfig:
-    """The :class:`TrainConfig` of the parsed flags (the command line's only conversion); ``UserError`` on a bad value."""
+    """The :class:`TrainConfig` of the parsed flags (the command line's only conversion); ``UserError`` on a bad
+    value."""
     missing = [f"--{k}" for k in ("config", "data", "stage") if getattr(args, k) is None]
     if missing:
         raise UserError(f"{', '.join(missing)} required (or --recipe FILE)")

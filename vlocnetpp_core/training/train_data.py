@@ -74,12 +74,14 @@ def training_clips(
         )
         if need <= MAX_MEMORY_SHARE * free:
             log(
-                f"decoding {len(index)} training frames into memory at {cache_size[0]}x{cache_size[1]} ({need / 2**20:.0f} MiB)"
+                f"decoding {len(index)} training frames into memory at "
+                f"{cache_size[0]}x{cache_size[1]} ({need / 2**20:.0f} MiB)"
             )
             index = FrameCache(index, cache_size, depth=seg, labels=seg)
         else:
             log(
-                f"training frames decoded per clip: caching them would take {need / 2**30:.1f} GiB of {free / 2**30:.1f} GiB available"
+                "training frames decoded per clip: "
+                f"caching them would take {need / 2**30:.1f} GiB of {free / 2**30:.1f} GiB available"
             )
     return torch.utils.data.ConcatDataset(
         [ClipDataset(index, clip_len, transform, stride=s, depth=seg, labels=seg) for s in strides]

@@ -43,7 +43,8 @@ def load_inits(model, criterion, paths: list[str], stage: str, log) -> list[dict
         bad = [k for k, v in keep.items() if v.shape != own[k].shape]
         if bad:
             raise UserError(
-                f"{path}: {len(bad)} tensors do not match this model config (e.g. {bad[0]}); was it trained with another --config?"
+                f"{path}: {len(bad)} tensors do not match this model config "
+                f"(e.g. {bad[0]}); was it trained with another --config?"
             )
         model.load_state_dict({k: v.to(own[k].dtype) for k, v in keep.items()}, strict=False)
         loaded.update(keep)

@@ -1,4 +1,5 @@
-"""The :class:`Trainer` of ``vlocnetpp train``: set-up, resume, optimiser steps, validation and saving (``--init`` sources: ``train_init``).
+"""The :class:`Trainer` of ``vlocnetpp train``: set-up, resume, optimiser steps, validation and saving (``--init``
+sources: ``train_init``).
 
 One run of a :class:`~vlocnetpp_core.training.config.TrainConfig` trains one stage, by the rules of its
 :class:`~vlocnetpp_core.model.stages.StageSpec` (see ``train.py`` for the flags and the run folder). Every step
@@ -159,8 +160,8 @@ class Trainer:
         self.optimizer = torch.optim.Adam(params, lr=self.lr, betas=(0.9, 0.999), eps=1e-10)
 
     def _frozen_parts(self) -> tuple[str, ...]:
-        """``--freeze``, plus the trunk of one pose stream trained on top of the other's: kept as the first stage learned it
-        (weights and BatchNorm statistics), so that mtl can combine the two streams consistently."""
+        """``--freeze``, plus the trunk of one pose stream trained on top of the other's: kept as the first stage
+        learned it (weights and BatchNorm statistics), so that mtl can combine the two streams consistently."""
         frozen = set(self.config.freeze)
         if frozen_trunk(self.config.stage, [src["stage"] for src in self.sources]):
             frozen.add("trunk")
@@ -173,8 +174,8 @@ class Trainer:
 
     def _resume(self, fresh: bool = False) -> None:
         """Weights, optimiser, loss weights, RNG, step and best score of the run in ``--out``; ``--lr`` steps the rate.
-        ``fresh`` (``--restart``, a warm restart): the optimiser state (Adam's moments) and the learned loss weights start
-        anew, as at the start of the run, and only the weights, RNG, step and best score come back."""
+        ``fresh`` (``--restart``, a warm restart): the optimiser state (Adam's moments) and the learned loss weights
+        start anew, as at the start of the run, and only the weights, RNG, step and best score come back."""
         from vlocnetpp_core.inference.checkpoint import read_checkpoint_tensors
         from vlocnetpp_core.training.train_state import load_train_state
 
@@ -202,7 +203,8 @@ class Trainer:
     # ------------------------------------------------------------------ the loop
 
     def run(self) -> None:
-        """Train to ``total`` steps, validating and saving every ``--val-every`` steps (and at least every ``--save-every-s``)."""
+        """Train to ``total`` steps, validating and saving every ``--val-every`` steps (and at least every
+        ``--save-every-s``)."""
         c = self.config
         progress = None
         if self.is_main and not c.no_progress:
@@ -213,7 +215,8 @@ class Trainer:
             )
         self.log(
             f"{c.stage}: {len(self.train_clips)} clips (frame strides {','.join(map(str, c.frame_strides))}), "
-            f"{self.sampler.batches_per_epoch} steps/epoch, {self.total} steps, lr {self.lr:g}, batch {c.batch_size}, device {self.device}"
+            f"{self.sampler.batches_per_epoch} steps/epoch, {self.total} steps, "
+            f"lr {self.lr:g}, batch {c.batch_size}, device {self.device}"
         )
         self.last_save = time.monotonic()
         try:
@@ -222,7 +225,8 @@ class Trainer:
             if self.is_main and self.step > 0:
                 self.save(False)
                 self.log(
-                    f"interrupted at step {self.step}: saved ({self.out / 'last.safetensors'}); --resume continues from there"
+                    f"interrupted at step {self.step}: "
+                    f"saved ({self.out / 'last.safetensors'}); --resume continues from there"
                 )
             raise
         if (
@@ -369,7 +373,8 @@ class Trainer:
 
 
 def float32_outputs(out: StepOutput) -> StepOutput:
-    """``out`` with its heads' outputs in float32 (an autocast forward gives the segmentation logits and depth in bfloat16)."""
+    """``out`` with its heads' outputs in float32 (an autocast forward gives the segmentation logits and depth in
+    bfloat16)."""
     heads = {f.name: v.float() for f in dataclasses.fields(out) if isinstance(v := getattr(out, f.name), torch.Tensor)}
     return dataclasses.replace(out, **heads)
 
@@ -389,7 +394,8 @@ def forward_stage(net, batch: dict, stage: str):
 @torch.no_grad()
 def validate(model, criterion, clips: list, stage: str, device) -> tuple[dict, dict]:
     """Mean validation losses (eval mode) over the ``ClipDataset`` of every training stride, smallest first, and the
-    covariance calibration of pose and odometry errors from the first alone (at stride 1: the camera's own frame spacing).
+    covariance calibration of pose and odometry errors from the first alone (at stride 1: the camera's own frame
+    spacing).
 
     Every stride counts: validated at one frame spacing, an odometry stream that predicts the same step for any
     pair scores as well as one that measures the motion whenever that spacing is the mean of the training ones.
@@ -424,7 +430,8 @@ def validate(model, criterion, clips: list, stage: str, device) -> tuple[dict, d
         "odometry_variance": _variance(odo_err),
         "frames": int(sum(len(e) for e in pose_err)),
         "source": f"validation ({stage}, {len(clips[0])} clips at frame stride {clips[0].stride})",
-        "note": "per-axis variance of validation errors: x, y, z (m^2), rotation about x, y, z (rad^2); odometry per frame",
+        "note": "per-axis variance of validation errors: x, y, z (m^2), "
+        "rotation about x, y, z (rad^2); odometry per frame",
     }
     return metrics, calib
 
