@@ -80,30 +80,6 @@ def test_refinement_recovers_the_pose_from_a_perturbed_prior(campus, campus_map)
     assert np.mean((refined[:, 0] < 0.1) & (refined[:, 1] < 1.0)) >= 0.9
 
 
-def test_matching_ahead_and_masking_after_matching_change_no_result(campus, campus_map):
-    """What the stream does for speed (match the keyframes near a guess on the worker, leave out moving objects after
-    matching) gives the pose, inliers and status of matching the masked features with the chosen keyframes."""
-    refiner = Refiner.from_file(campus_map)
-    index = open_dataset(campus, None, "train")
-    checked = 0
-    for i in range(3, 60, 7):
-        f = index.load(i)
-        grey, K = refiner.prepare(f.image, f.intrinsics)
-        features = refiner.extract(grey)
-        keep = np.arange(len(features)) % 3 != 0  # stands in for a mask of moving objects
-        prior = _shifted(f.t, f.q, 1.0, 3.0)
-        plain = refiner.refine(features.select(keep), K, prior)
-        guess = refiner.candidates(_shifted(f.t, f.q, 2.0, 0.0))  # a guess that misses some of the chosen keyframes
-        ahead = refiner.refine(features, K, prior, keep=keep, matches=refiner.prematch(features, guess))
-        assert (ahead.status, ahead.inliers) == (plain.status, plain.inliers)
-        np.testing.assert_array_equal(ahead.keyframes, plain.keyframes)
-        if plain.solution is not None:
-            np.testing.assert_array_equal(ahead.solution.t, plain.solution.t)
-            np.testing.assert_array_equal(ahead.solution.q, plain.solution.q)
-            checked += plain.accepted
-    assert checked >= 6, checked
-
-
 def test_a_prior_far_from_the_map_or_a_blank_frame_keeps_the_network_pose_and_says_why(campus, campus_map):
     stream = RefinedStream(Refiner.from_file(campus_map))
     f = _between_keyframes(campus)[3]

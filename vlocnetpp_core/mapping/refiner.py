@@ -108,50 +108,23 @@ class Refiner:
             intrinsics = intrinsics.resized(*size)
         return grey, intrinsics.matrix()
 
-    def keyframes_for(
-        self, network: tuple[np.ndarray, np.ndarray], odometry: tuple[np.ndarray, np.ndarray] | None = None
-    ) -> np.ndarray:
-        """The keyframes :meth:`refine` matches: those near the odometry's prediction, then those near the network's
-        pose (``(t (3,), q (4,))`` each, ``T_map,cam``), ``config.keyframes`` at most."""
-        c = self.config
-        near = [
-            self.map.near(*prior, c.keyframes, c.search_radius_m, c.search_angle_deg)
-            for prior in (odometry, network)
-            if prior is not None
-        ]
-        return np.array(list(dict.fromkeys(np.concatenate(near).tolist()))[: c.keyframes], np.int64)
-
-    def candidates(self, guess: tuple[np.ndarray, np.ndarray], extra: int = 2) -> np.ndarray:
-        """Keyframes likely to be :meth:`keyframes_for` a frame whose pose is about ``guess`` ``(t, q)``: those near it,
-        ``extra`` more than are matched (for :meth:`prematch` before the network's pose is known)."""
-        c = self.config
-        return self.map.near(*guess, c.keyframes + extra, c.search_radius_m, c.search_angle_deg)
-
-    def prematch(
-        self, features: Features, keyframes: np.ndarray
-    ) -> dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]]:
-        """The ratio-test matches of ``features`` with each of ``keyframes`` (:func:`.features.match`), by keyframe:
-        what :meth:`refine` reuses instead of matching again."""
-        return {
-            int(k): match(features.descriptors, self.map.keyframe(int(k))[2], self.map.features.ratio)
-            for k in keyframes
-        }
-
     def refine(
         self,
         features: Features,
         K: np.ndarray,
         network: tuple[np.ndarray, np.ndarray],
         odometry: tuple[np.ndarray, np.ndarray] | None = None,
-        keep: np.ndarray | None = None,
-        matches: dict | None = None,
     ) -> Refinement:
         """Refine the frame with ``features`` and intrinsics ``K (3, 3)`` given the network's pose and the
-        odometry's prediction (``(t (3,), q (4,))`` each, ``T_map,cam``); only the features where ``keep (N,) bool``
-        (all: None); ``matches``: :meth:`prematch` of some keyframes (the same result as matching them here)."""
+        odometry's prediction (``(t (3,), q (4,))`` each, ``T_map,cam``)."""
         c = self.config
-        keyframes = self.keyframes_for(network, odometry)
-        result = self._solve(features, K, keyframes, keep, matches)
+        near = [
+            self.map.near(*prior, c.keyframes, c.search_radius_m, c.search_angle_deg)
+            for prior in (odometry, network)
+            if prior is not None
+        ]
+        keyframes = np.array(list(dict.fromkeys(np.concatenate(near).tolist()))[: c.keyframes], np.int64)
+        result = self._solve(features, K, keyframes)
         if result.solution is None or result.status != "refined":
             return result
         s = result.solution
@@ -182,21 +155,14 @@ class Refiner:
         grey, K = self.prepare(image, intrinsics)
         return self.locate(self.extract(grey), thumbnail, K)
 
-    def _solve(
-        self,
-        features: Features,
-        K: np.ndarray,
-        keyframes: np.ndarray,
-        keep: np.ndarray | None = None,
-        matches: dict | None = None,
-    ) -> Refinement:
-        """Match ``features`` (where ``keep``) with ``keyframes``, PnP, and the inlier and reprojection checks."""
+    def _solve(self, features: Features, K: np.ndarray, keyframes: np.ndarray) -> Refinement:
+        """Match ``features`` with ``keyframes``, PnP, and the inlier and reprojection checks."""
         c = self.config
-        if (len(features) if keep is None else int(np.count_nonzero(keep))) < c.min_inliers:
+        if len(features) < c.min_inliers:
             return Refinement("no_features", None, keyframes)
         if len(keyframes) == 0:
             return Refinement("no_keyframes", None, keyframes)
-        uv, points = self._correspondences(features, keyframes, keep, matches or {})
+        uv, points = self._correspondences(features, keyframes)
         if len(uv) < c.min_inliers:
             return Refinement("too_few_matches", None, keyframes)
         solution = solve_pnp(uv, points, K, c.ransac_px, c.ransac_iterations)
@@ -210,23 +176,17 @@ class Refiner:
         solution.covariance = factors[:, None] * solution.covariance * factors[None, :]
         return Refinement("refined", solution, keyframes)
 
-    def _correspondences(
-        self, features: Features, keyframes: np.ndarray, keep: np.ndarray | None, matches: dict
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """``uv (n, 2)`` of the frame and ``points (n, 3)`` of the map: per query keypoint (where ``keep``) its closest
-        ratio-test match over ``keyframes``. A keypoint's match does not depend on the other keypoints, so leaving
-        keypoints out after matching gives what matching without them gives."""
+    def _correspondences(self, features: Features, keyframes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``uv (n, 2)`` of the frame and ``points (n, 3)`` of the map: per query keypoint its closest ratio-test match
+        over ``keyframes``."""
         best_distance = np.full(len(features), np.inf, np.float32)
         best_point = np.zeros((len(features), 3), np.float32)
         for k in keyframes:
             _, points, descriptors = self.map.keyframe(int(k))
-            found = matches.get(int(k))
-            qi, ki, dist = (
-                found if found is not None else match(features.descriptors, descriptors, self.map.features.ratio)
-            )
+            qi, ki, dist = match(features.descriptors, descriptors, self.map.features.ratio)
             closer = dist < best_distance[qi]
             best_distance[qi[closer]], best_point[qi[closer]] = dist[closer], points[ki[closer]]
-        found = np.isfinite(best_distance) if keep is None else np.isfinite(best_distance) & keep
+        found = np.isfinite(best_distance)
         return features.uv[found], best_point[found]
 
 

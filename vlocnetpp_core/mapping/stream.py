@@ -1,12 +1,9 @@
-"""Refinement over a stream of frames: what the :class:`~vlocnetpp_core.inference.localizer.Localizer` calls around the
-network.
+"""Refinement over a stream of frames: what the :class:`~vlocnetpp_core.inference.localizer.Localizer` calls around
+the network.
 
 Per frame, :meth:`RefinedStream.start` (before the network runs) begins the frame's feature extraction on a
-worker thread, so that SIFT and the network share the cores, and there matches the features with the keyframes
-near where the frame is expected (the last published pose moved on by the last relative pose:
-:meth:`.refiner.Refiner.candidates`); :meth:`RefinedStream.finish` (with the network's pose and relative pose)
-picks the keyframes as :meth:`.refiner.Refiner.refine` always does, matches those the worker did not, solves and
-returns the pose to publish (the worker's matching saves time, it changes no result):
+worker thread, so that SIFT and the network share the cores; :meth:`RefinedStream.finish` (with the network's
+pose and relative pose) matches and solves (:meth:`.refiner.Refiner.refine`) and returns the pose to publish:
 
 * ``refined``: the PnP pose, with its calibrated covariance (keypoints on the moving objects of the network's own
   segmentation left out);
@@ -58,14 +55,13 @@ class RefinedStream:
         self.refine_every = int(refine_every)
         self.odometry_variance = np.zeros(6) if odometry_variance is None else np.asarray(odometry_variance, np.float64)
         self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="vlocnetpp-features")
-        self._pending: tuple[Future, np.ndarray, int] | None = None  # (features, matches), K, width of the grey image
+        self._pending: tuple[Future, np.ndarray, int] | None = None  # features, K, width of the grey image
         self.reset()
 
     def reset(self) -> None:
         """Forget the last refined pose (after a reset of the temporal state)."""
         self._anchor: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # t, q, covariance
         self._steps = 0  # frames since the anchor was refined
-        self._guess: tuple[np.ndarray, np.ndarray] | None = None  # where the next frame is expected: t, q
 
     def start(self, image: np.ndarray, intrinsics) -> None:
         """Begin the frame ``image`` (``(H, W, 3)`` RGB) with its
@@ -74,13 +70,7 @@ class RefinedStream:
         if self._anchor is not None and (self._steps + 1) % self.refine_every != 0:
             return  # propagated frame
         grey, K = self.refiner.prepare(image, intrinsics)
-        candidates = np.zeros(0, np.int64) if self._guess is None else self.refiner.candidates(self._guess)
-        self._pending = (self._worker.submit(self._features_and_matches, grey, candidates), K, grey.shape[1])
-
-    def _features_and_matches(self, grey: np.ndarray, candidates: np.ndarray):
-        """On the worker thread: the frame's features and their matches with the ``candidates`` keyframes."""
-        features = self.refiner.extract(grey)
-        return features, self.refiner.prematch(features, candidates)
+        self._pending = (self._worker.submit(self.refiner.extract, grey), K, grey.shape[1])
 
     def cancel(self) -> None:
         """Drop the started frame (e.g. the network rejected it)."""
@@ -111,25 +101,17 @@ class RefinedStream:
         pending, self._pending = self._pending, None
         if pending is None:  # between refinements
             self._anchor = prediction
-            return self._published(
-                StreamPose(prediction[0], prediction[1], prediction[2], "propagated", None, 0), rel_t, rel_q
-            )
-        features, matches = pending[0].result()
-        keep = None if mask is None else off_dynamic(features.uv * (mask.shape[1] / pending[2]), mask)
+            return StreamPose(prediction[0], prediction[1], prediction[2], "propagated", None, 0)
+        features = pending[0].result()
+        if mask is not None:
+            scale = mask.shape[1] / pending[2]
+            features = features.select(off_dynamic(features.uv * scale, mask))
         result = self.refiner.refine(
-            features, pending[1], (net_t, net_q), None if prediction is None else prediction[:2], keep, matches
+            features, pending[1], (net_t, net_q), None if prediction is None else prediction[:2]
         )
         if result.accepted:
             s = result.solution
             self._anchor, self._steps = (s.t, s.q, s.covariance), 0
-            return self._published(
-                StreamPose(s.t, s.q, s.covariance, "refined", result.status, result.inliers), rel_t, rel_q
-            )
+            return StreamPose(s.t, s.q, s.covariance, "refined", result.status, result.inliers)
         self._anchor = prediction if prediction is not None and self._steps < MAX_PREDICTION_STEPS else None
-        return self._published(StreamPose(net_t, net_q, None, "network", result.status, result.inliers), rel_t, rel_q)
-
-    def _published(self, pose: StreamPose, rel_t: np.ndarray, rel_q: np.ndarray) -> StreamPose:
-        """``pose``, after keeping where the next frame is expected: ``pose`` moved on by this frame's relative pose."""
-        t, q = geometry.pose_compose(pose.t, pose.q, rel_t, rel_q)
-        self._guess = (t, geometry.quat_normalize(q))
-        return pose
+        return StreamPose(net_t, net_q, None, "network", result.status, result.inliers)
