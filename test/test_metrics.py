@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from vlocnetpp_core import geometry, metrics
+from vlocnetpp_core import geometry
 from vlocnetpp_core.errors import DataError
+from vlocnetpp_core.evaluation import metrics
 from vlocnetpp_core.evaluation.trajectory import (
     Trajectory,
     accumulate_odometry,
