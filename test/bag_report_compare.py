@@ -18,7 +18,7 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
-from vlocnetpp_core.bag.evaluate_bag import MatchedFrames
+from vlocnetpp_core.bag.matched_frames import MatchedFrames
 from vlocnetpp_core.evaluation.metrics import DEFAULT_THRESHOLDS, MIN_STEP_M, accuracy_key, pose_errors
 
 SCORED_PARTS = ("pose", "odometry", "segmentation")  # a bag holds no step times, so "timing" is left out

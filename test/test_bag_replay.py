@@ -19,7 +19,7 @@ from data_fixtures import trajectory, write_deeploc_split
 
 from vlocnetpp_core.bag import messages
 from vlocnetpp_core.bag.bagfile import BagReader
-from vlocnetpp_core.bag.evaluate_bag import read_matched_frames
+from vlocnetpp_core.bag.matched_frames import read_matched_frames
 from vlocnetpp_core.bag.replay import ODOMETRY_TOPIC, POSE_TOPIC, POSE_WITH_COVARIANCE_TOPIC, SEGMENTATION_TOPIC
 from vlocnetpp_core.cli import main
 from vlocnetpp_core.inference.checkpoint import init_checkpoint

@@ -32,11 +32,11 @@ COMMANDS: dict[str, tuple[str, str, tuple[str, ...]]] = {
         ("convert-deeploc",),
     ),
     "extract": (
-        "vlocnetpp_core.bag.extract",
+        "vlocnetpp_core.bag.extract_cli",
         "turn a robot's ROS 2 bag into a DeepLoc-layout dataset (images, poses, depth)",
         (),
     ),
-    "replay": ("vlocnetpp_core.bag.replay", "run the localizer over a bag and write an output bag", ()),
+    "replay": ("vlocnetpp_core.bag.replay_cli", "run the localizer over a bag and write an output bag", ()),
     "map": (
         "vlocnetpp_core.mapping.cli",
         "build a keyframe map of training images for refinement (map build, map info)",

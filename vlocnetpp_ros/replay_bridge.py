@@ -343,7 +343,7 @@ def main(argv: list[str] | None = None) -> int:
     """``python -m vlocnetpp_ros.replay_bridge``: what ``vlocnetpp replay --through-node`` runs (same flags)."""
     import argparse
 
-    from vlocnetpp_core.bag.replay import add_arguments, map_argument, parse_rate
+    from vlocnetpp_core.bag.replay_cli import add_arguments, map_argument, parse_rate
     from vlocnetpp_core.errors import UserError
 
     parser = argparse.ArgumentParser(prog="vlocnetpp replay --through-node", description=__doc__.splitlines()[0])

@@ -311,7 +311,7 @@ def run(args: argparse.Namespace) -> int:
     if (args.robot_frame is None) != (args.camera_extrinsics is None):
         raise UserError("--robot-frame ROBOT and --camera-extrinsics X,Y,Z,QW,QX,QY,QZ go together")
     if args.camera_extrinsics is not None:
-        from vlocnetpp_core.bag.extract import parse_extrinsics
+        from vlocnetpp_core.bag.extract_cli import parse_extrinsics
 
         extrinsics = parse_extrinsics(args.camera_extrinsics)
     summary = convert(

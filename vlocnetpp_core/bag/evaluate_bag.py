@@ -42,25 +42,21 @@ from pathlib import Path
 
 import numpy as np
 
-from vlocnetpp_core.bag import messages
 from vlocnetpp_core.bag.bagfile import BagReader
 from vlocnetpp_core.bag.image_baselines import describe_frames
-from vlocnetpp_core.bag.pose_source import TfCollector
+from vlocnetpp_core.bag.matched_frames import GroundTruth, read_matched_frames, relative_odometry
+from vlocnetpp_core.bag.segmentation_scores import score_segmentation
 from vlocnetpp_core.bag.topics import (
     DEFAULT_MAX_GAP_S,
     GROUND_TRUTH_TOPIC,
-    IMAGE_TOPICS,
     NETWORK_POSE_TOPIC,
     ODOMETRY_TOPIC,
     POSE_TOPIC,
     SEGMENTATION_TOPIC,
-    SEMANTIC_TOPIC,
-    TF_STATIC_TOPIC,
-    TF_TOPIC,
 )
 from vlocnetpp_core.classes import CLASS_NAMES
-from vlocnetpp_core.errors import DataError, UserError
-from vlocnetpp_core.evaluation.metrics import DEFAULT_THRESHOLDS, SequenceResult, confusion_matrix, evaluate_sequences
+from vlocnetpp_core.errors import UserError
+from vlocnetpp_core.evaluation.metrics import DEFAULT_THRESHOLDS, SequenceResult, evaluate_sequences
 from vlocnetpp_core.evaluation.report import (
     add_baseline,
     add_report_arguments,
@@ -69,181 +65,6 @@ from vlocnetpp_core.evaluation.report import (
     without_segmentation,
     write_outputs,
 )
-from vlocnetpp_core.geometry import matrix_to_quat, pose_to_matrix
-
-_PENDING_LIMIT = 64  # label maps / masks waiting for their partner stamp (a partner never seen is dropped)
-
-
-@dataclass
-class MatchedFrames:
-    """The frames of a bag with ground truth and a global pose: ``stamps (N,)`` ns, poses ``(N, 3)`` /
-    ``(N, 4)`` ``(w, x, y, z)``, odometry poses (rows NaN where missing) and ``sequences`` (ranges). ``pred``:
-    the network's pose (``/vlocnet/network_pose`` when the bag has it, else ``/vlocnet/pose``); ``refined``: the
-    published ``/vlocnet/pose`` of a bag with ``/vlocnet/network_pose``, else None."""
-
-    stamps: np.ndarray
-    true_t: np.ndarray
-    true_q: np.ndarray
-    pred_t: np.ndarray
-    pred_q: np.ndarray
-    odom_t: np.ndarray
-    odom_q: np.ndarray
-    sequences: list[range]
-    refined_t: np.ndarray | None = None
-    refined_q: np.ndarray | None = None
-
-
-@dataclass(frozen=True)
-class GroundTruth:
-    """Where the true camera poses are: a pose ``topic``, or the TF chain ``tf = (PARENT, CHILD)`` composed with
-    ``extrinsics = (t, q)`` ``T_CHILD,camera`` and interpolated to the frames' stamps (``max_pose_gap_s``)."""
-
-    topic: str = GROUND_TRUTH_TOPIC
-    tf: tuple[str, str] | None = None
-    extrinsics: tuple[np.ndarray, np.ndarray] | None = None
-    max_pose_gap_s: float = 0.5
-
-    @property
-    def topics(self) -> list[str]:
-        return [TF_TOPIC, TF_STATIC_TOPIC] if self.tf is not None else [self.topic]
-
-
-def split_on_gaps(stamps_ns: np.ndarray, max_gap_s: float) -> list[range]:
-    """Contiguous ranges of sorted stamps; a new range starts after a gap longer than ``max_gap_s``."""
-    if len(stamps_ns) == 0:
-        return []
-    cuts = np.nonzero(np.diff(stamps_ns) > max_gap_s * 1e9)[0] + 1
-    bounds = [0, *cuts.tolist(), len(stamps_ns)]
-    return [range(a, b) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
-
-
-def read_matched_frames(
-    reader: BagReader, ground_truth: GroundTruth = GroundTruth(), max_gap_s: float = DEFAULT_MAX_GAP_S
-) -> MatchedFrames:
-    """Pass 1: the poses of every frame with ground truth and ``/vlocnet/pose`` (see module doc)."""
-    for topic in (ground_truth.topics[0], POSE_TOPIC):
-        if topic not in reader.topics:
-            raise DataError(reader.path, f"no {topic} topic (topics: {', '.join(sorted(reader.topics)) or 'none'})")
-    from_tf = ground_truth.tf is not None
-    refined = NETWORK_POSE_TOPIC in reader.topics
-    pose_topics = (
-        [POSE_TOPIC, ODOMETRY_TOPIC]
-        + ([NETWORK_POSE_TOPIC] if refined else [])
-        + ([] if from_tf else [ground_truth.topic])
-    )
-    poses: dict[str, dict[int, tuple[np.ndarray, np.ndarray]]] = {t: {} for t in pose_topics}
-    tf = TfCollector()
-    for topic, _, msg in reader.messages({*pose_topics, *ground_truth.topics}):
-        if topic in poses:
-            poses[topic][messages.stamp_ns(msg)] = messages.stamped_pose(msg)
-        else:
-            tf.add(msg, static=topic == TF_STATIC_TOPIC)
-    published, odom = poses[POSE_TOPIC], poses[ODOMETRY_TOPIC]
-    pred = poses[NETWORK_POSE_TOPIC] if refined else published
-    gt = _tf_poses_at(tf, ground_truth, sorted(pred)) if from_tf else poses[ground_truth.topic]
-    stamps = np.array(sorted(gt.keys() & pred.keys() & published.keys()), dtype=np.int64)
-    if len(stamps) == 0:
-        raise DataError(
-            reader.path,
-            f"no {POSE_TOPIC} message has the stamp of a ground-truth pose "
-            f"({'TF ' + ' -> '.join(ground_truth.tf) if from_tf else ground_truth.topic})",
-        )
-    nan_pose = (np.full(3, np.nan), np.full(4, np.nan))
-
-    def column(source, part, width):
-        return np.array([source.get(s, nan_pose)[part] for s in stamps.tolist()], dtype=np.float64).reshape(-1, width)
-
-    return MatchedFrames(
-        stamps,
-        column(gt, 0, 3),
-        column(gt, 1, 4),
-        column(pred, 0, 3),
-        column(pred, 1, 4),
-        column(odom, 0, 3),
-        column(odom, 1, 4),
-        split_on_gaps(stamps, max_gap_s),
-        column(published, 0, 3) if refined else None,
-        column(published, 1, 4) if refined else None,
-    )
-
-
-def _tf_poses_at(
-    tf: TfCollector, ground_truth: GroundTruth, stamps: list[int]
-) -> dict[int, tuple[np.ndarray, np.ndarray]]:
-    """The camera's true pose at each of ``stamps`` (ns) where the TF chain has one (see :class:`GroundTruth`)."""
-    if not stamps:
-        return {}
-    t, q, reasons = tf.chain(*ground_truth.tf).camera_at(
-        np.array(stamps, dtype=np.int64), ground_truth.max_pose_gap_s, ground_truth.extrinsics
-    )
-    return {s: (t[k], q[k]) for k, s in enumerate(stamps) if reasons[k] is None}
-
-
-def relative_odometry(odom_t: np.ndarray, odom_q: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """``T_{k-1}^{-1} T_k`` of consecutive odometry poses (row 0 identity), or None when any pose is missing."""
-    if len(odom_t) == 0 or np.isnan(odom_t).any() or np.isnan(odom_q).any():
-        return None
-    T = pose_to_matrix(odom_t, odom_q)
-    rel = np.broadcast_to(np.eye(4), T.shape).copy()
-    rel[1:] = np.linalg.inv(T[:-1]) @ T[1:]
-    return rel[:, :3, 3].copy(), matrix_to_quat(rel[:, :3, :3])
-
-
-@dataclass
-class SegmentationScores:
-    """Pass 2 per sequence: ``confusion`` (or None without labels) and the ``samples`` kept for plots."""
-
-    confusion: list[np.ndarray | None]
-    samples: list[list[tuple[int, np.ndarray, np.ndarray, np.ndarray | None]]]
-
-
-def score_segmentation(
-    reader: BagReader, where: dict[int, tuple[int, int]], sample_stamps: set[int], num_classes: int = len(CLASS_NAMES)
-) -> SegmentationScores:
-    """Pass 2: ``/vlocnet/segmentation`` against ``/camera/semantic`` for the frames in ``where`` (stamp ->
-    (sequence, position)); camera images are decoded only for ``sample_stamps``."""
-    n_seq = 1 + max((k for k, _ in where.values()), default=-1)
-    scores = SegmentationScores([None] * n_seq, [[] for _ in range(n_seq)])
-    have_labels = SEMANTIC_TOPIC in reader.topics
-    image_topic = next((t for t in IMAGE_TOPICS if t in reader.topics), None) if sample_stamps else None
-    if SEGMENTATION_TOPIC not in reader.topics or not (have_labels or image_topic):
-        return scores
-    topics = [SEGMENTATION_TOPIC] + ([SEMANTIC_TOPIC] if have_labels else []) + ([image_topic] if image_topic else [])
-    pending: dict[
-        int, dict[str, np.ndarray]
-    ] = {}  # stamp -> the parts that arrived (topics may be logged at different times)
-    for topic, _, msg in reader.messages(topics):
-        ns = messages.stamp_ns(msg)
-        if ns not in where or (topic == image_topic and ns not in sample_stamps):
-            continue
-        parts = pending.setdefault(ns, {})
-        parts[topic] = messages.any_image_to_rgb(msg) if topic == image_topic else messages.image_to_array(msg)
-        needed = (
-            [SEGMENTATION_TOPIC]
-            + ([SEMANTIC_TOPIC] if have_labels else [])
-            + ([image_topic] if image_topic and ns in sample_stamps else [])
-        )
-        if not all(t in parts for t in needed):
-            if len(pending) > _PENDING_LIMIT:
-                del pending[min(pending)]
-            continue
-        del pending[ns]
-        k, position = where[ns]
-        mask, labels, image = parts[SEGMENTATION_TOPIC], parts.get(SEMANTIC_TOPIC), parts.get(image_topic)
-        for other, what in ((labels, SEMANTIC_TOPIC), (None if image is None else image[..., 0], image_topic)):
-            if other is not None and other.shape != mask.shape:
-                raise DataError(
-                    reader.path,
-                    f"at stamp {ns / 1e9:.9f} s the {SEGMENTATION_TOPIC} mask is {mask.shape[1]}x{mask.shape[0]} "
-                    f"but {what} is {other.shape[1]}x{other.shape[0]} "
-                    "(the localizer publishes masks at the image size)",
-                )
-        if labels is not None:
-            conf = confusion_matrix(labels, mask, num_classes)
-            scores.confusion[k] = conf if scores.confusion[k] is None else scores.confusion[k] + conf
-        if image is not None:
-            scores.samples[k].append((position, image, mask, labels))
-    return scores
 
 
 @dataclass
@@ -441,7 +262,7 @@ def ground_truth_of(args: argparse.Namespace) -> GroundTruth:
     """The :class:`GroundTruth` of the command line (``--camera-extrinsics`` checked as the node's)."""
     if args.tf is None and args.camera_extrinsics is not None:
         raise UserError("--camera-extrinsics applies with --tf PARENT CHILD (a ground-truth topic holds camera poses)")
-    from vlocnetpp_core.bag.extract import parse_extrinsics
+    from vlocnetpp_core.bag.extract_cli import parse_extrinsics
 
     extrinsics = parse_extrinsics(args.camera_extrinsics) if args.camera_extrinsics is not None else None
     return GroundTruth(args.ground_truth_topic, tuple(args.tf) if args.tf else None, extrinsics, args.max_pose_gap)
