@@ -29,7 +29,6 @@ from pathlib import Path
 from vlocnetpp_core.bag import topics
 from vlocnetpp_core.errors import UserError
 from vlocnetpp_core.inference.checkpoint import MAP_AUTO
-from vlocnetpp_core.mapping.build import ANGLE_DEG, SPACING_M
 from vlocnetpp_core.programs import program_command
 
 TRAINING_SEED = 0  # the visits the shipped model was trained on (config/recipes/shipped.yaml)
@@ -183,8 +182,7 @@ def _shipped_map_path(checkpoint: Path, out: Path) -> Path:
 
 def _build_shipped_map(path: Path) -> None:
     """Step 0 of the first run: build the shipped model's map (:data:`SHIPPED_MAP`) into ``path``."""
-    from vlocnetpp_core.mapping.build import build_map_of
-    from vlocnetpp_core.mapping.sources import scene_keyframes, scene_source
+    from vlocnetpp_core.mapping.build import build_scene_map
 
     spec = SHIPPED_MAP
     t0 = _step(
@@ -192,11 +190,7 @@ def _build_shipped_map(path: Path) -> None:
         f"building the shipped model's keyframe map (first run only): the keyframes of its {spec['loops']} training "
         f"visits (scene '{spec['scene']}', seed {spec['seed']}), rendered, into {path}",
     )
-    sequences = scene_keyframes(
-        spec["scene"], spec["seed"], spec["loops"], spec["frames_per_loop"], SPACING_M, ANGLE_DEG
-    )
-    source = scene_source(spec["scene"], spec["seed"], spec["loops"], spec["frames_per_loop"])
-    build_map_of(sequences, source, workers=os.cpu_count() or 1).save(path)
+    build_scene_map(**spec, workers=os.cpu_count() or 1).save(path)
     _done(t0)
 
 

@@ -26,7 +26,7 @@ from vlocnetpp_core import geometry
 from vlocnetpp_core.errors import UserError
 from vlocnetpp_core.mapping.features import FeatureConfig, FeatureExtractor, Features, match, off_dynamic, to_grey
 from vlocnetpp_core.mapping.keyframe_map import KeyframeMap
-from vlocnetpp_core.mapping.sources import dataset_keyframes
+from vlocnetpp_core.mapping.sources import dataset_keyframes, scene_keyframes, scene_source
 
 SPACING_M = 7.0  # keyframe spacing and turn of the shipped map (docs/refinement.md, "The map")
 ANGLE_DEG = 25.0
@@ -98,6 +98,26 @@ def build_map(
     has no frames, or when the map would have no points."""
     sequences = dataset_keyframes(indexes, spacing_m, angle_deg)
     return build_map_of(sequences, "; ".join(f"{ix.root} ({ix.split})" for ix in indexes), features, progress, workers)
+
+
+def build_scene_map(
+    scene: str,
+    seed: int,
+    loops: int,
+    frames_per_loop: int,
+    spacing_m: float = SPACING_M,
+    angle_deg: float = ANGLE_DEG,
+    size: tuple[int, int] = (320, 180),
+    lane_wander: float = 0.0,
+    features: FeatureConfig = FeatureConfig(),
+    progress: bool = True,
+    workers: int = 1,
+) -> KeyframeMap:
+    """The map of the train split ``vlocnetpp synth`` renders with these arguments, rendering only its keyframes
+    (:func:`.sources.scene_keyframes`: the same map as :func:`build_map` of the rendered dataset)."""
+    sequences = scene_keyframes(scene, seed, loops, frames_per_loop, spacing_m, angle_deg, size, lane_wander)
+    source = scene_source(scene, seed, loops, frames_per_loop, size, lane_wander)
+    return build_map_of(sequences, source, features, progress, workers)
 
 
 def build_map_of(

@@ -116,13 +116,8 @@ def _check_build_args(args: argparse.Namespace) -> Path:
 
 def _build(args: argparse.Namespace) -> int:
     out = _check_build_args(args)
-    from vlocnetpp_core.mapping.build import build_map_of
-    from vlocnetpp_core.mapping.features import FeatureConfig
-
     start = time.perf_counter()
-    sequences, source = _keyframe_sequences(args)
-    workers = args.workers or os.cpu_count() or 1
-    m = build_map_of(sequences, source, FeatureConfig(max_features=args.max_features), not args.no_progress, workers)
+    m = _build_map(args)
     try:
         m.save(out)
     except OSError as err:
@@ -134,17 +129,18 @@ def _build(args: argparse.Namespace) -> int:
     return 0
 
 
-def _keyframe_sequences(args: argparse.Namespace) -> tuple[list, str]:
-    """The keyframe sequences (:mod:`.sources`) of ``--data`` or ``--scene``, and where they come from in words."""
-    from vlocnetpp_core.mapping import sources
+def _build_map(args: argparse.Namespace):
+    """The :class:`~.keyframe_map.KeyframeMap` of ``--data`` or ``--scene``."""
+    from vlocnetpp_core.mapping.build import build_map, build_scene_map
+    from vlocnetpp_core.mapping.features import FeatureConfig
 
+    features, progress = FeatureConfig(max_features=args.max_features), not args.no_progress
+    workers = args.workers or os.cpu_count() or 1
     if args.data:
         from vlocnetpp_core.data import open_dataset
 
         indexes = [open_dataset(d, args.format, args.split) for d in args.data]
-        return sources.dataset_keyframes(indexes, args.spacing, args.angle), "; ".join(
-            f"{ix.root} ({ix.split})" for ix in indexes
-        )
+        return build_map(indexes, args.spacing, args.angle, features, progress, workers)
     from vlocnetpp_core.synth.writer import check_render_args
 
     if args.loops < 1:
@@ -152,11 +148,18 @@ def _keyframe_sequences(args: argparse.Namespace) -> tuple[list, str]:
     size = check_render_args(
         args.scene, args.seed, args.loops, 0, args.frames_per_loop, args.size, None, args.lane_wander
     )
-    return (
-        sources.scene_keyframes(
-            args.scene, args.seed, args.loops, args.frames_per_loop, args.spacing, args.angle, size, args.lane_wander
-        ),
-        sources.scene_source(args.scene, args.seed, args.loops, args.frames_per_loop, size, args.lane_wander),
+    return build_scene_map(
+        args.scene,
+        args.seed,
+        args.loops,
+        args.frames_per_loop,
+        args.spacing,
+        args.angle,
+        size,
+        args.lane_wander,
+        features,
+        progress,
+        workers,
     )
 
 

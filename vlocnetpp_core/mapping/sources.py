@@ -14,7 +14,6 @@ labels as in the rendered dataset, and the map is the map of that dataset's trai
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -90,16 +89,15 @@ class SceneKeyframes:
         campus = _campus(self.scene)
         visit = _visit(self.scene, self.seed, self.loop, self.frames_per_loop, self.lane_wander)
         K = default_intrinsics(*self.size)
-        t, q = written_poses(visit)
+        written = _written_values(visit)
+        t, q = _reader_poses(written)
         out = []
-        for i in self.ids:
-            written = _written_values(visit, i)  # the renderer is given exactly the pose that is written
+        for i in self.ids:  # the renderer is given exactly the pose that is written
             rgb, labels, depth = render_frame(
-                campus, written[:3].tolist(), written[3:].tolist(), K, visit.lighting, visit.objects_at(i)
+                campus, written[i, :3].tolist(), written[i, 3:].tolist(), K, visit.lighting, visit.objects_at(i)
             )
-            depth = np.where(np.isfinite(depth) & (depth > 0), depth, 0.0).astype(
-                np.float32
-            )  # as the dataset reader gives it
+            # as the dataset reader gives it
+            depth = np.where(np.isfinite(depth) & (depth > 0), depth, 0.0).astype(np.float32)
             out.append(
                 Frame(rgb, t[i].copy(), q[i].copy(), depth, labels, K, 0.0, self.loop, f"loop {self.loop} frame {i}")
             )
@@ -123,7 +121,7 @@ def scene_keyframes(
     out = []
     for loop in range(loops):
         visit = _visit(scene, seed, loop, frames_per_loop, lane_wander)
-        t, q = written_poses(visit)
+        t, q = _reader_poses(_written_values(visit))
         for rng in split_sequences(np.arange(len(t)), t, q, MAX_ID_GAP, MAX_JUMP_M, MAX_JUMP_DEG):
             ids = tuple(
                 rng[p]
@@ -146,21 +144,20 @@ def scene_source(
     return f"scene {scene} seed {seed}, {loops} train visits of {frames_per_loop} frames at {size[0]}x{size[1]}{wander}"
 
 
-def written_poses(visit) -> tuple[np.ndarray, np.ndarray]:
-    """``t (N, 3)``, ``q (N, 4)`` of a visit's frames as the dataset reader gives them: rounded as ``poses.txt`` is
-    written, the quaternion normalised, ``w >= 0``."""
-    t, q = [], []
-    for i in range(len(visit.t)):
-        vals = _written_values(visit, i)
-        t.append(vals[:3])
-        q.append(vals[3:] / float(np.linalg.norm(vals[3:])))
-    return np.stack(t), geometry.quat_normalize(np.stack(q))
-
-
-def _written_values(visit, i: int) -> np.ndarray:
+def _written_values(visit) -> np.ndarray:
+    """``(N, 7)``: each frame's ``x y z qw qx qy qz`` as ``poses.txt`` holds them (rounded as written)."""
     from vlocnetpp_core.synth.writer import format_pose
 
-    return np.array([float(v) for v in format_pose("frame", visit.t[i], visit.q[i]).split()[1:]])
+    return np.array(
+        [[float(v) for v in format_pose("frame", t, q).split()[1:]] for t, q in zip(visit.t, visit.q, strict=True)]
+    )
+
+
+def _reader_poses(written: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``t (N, 3)``, ``q (N, 4)`` as the dataset reader gives the ``written`` poses: the quaternion normalised (one
+    line at a time, as it reads them), ``w >= 0``."""
+    q = np.stack([row[3:] / float(np.linalg.norm(row[3:])) for row in written])
+    return written[:, :3].copy(), geometry.quat_normalize(q)
 
 
 @lru_cache(maxsize=2)
@@ -174,6 +171,4 @@ def _campus(scene: str):
 def _visit(scene: str, seed: int, loop: int, frames_per_loop: int, lane_wander: float):
     from vlocnetpp_core.synth.drive import plan_visit
 
-    if not math.isfinite(lane_wander):
-        raise ValueError(f"lane_wander must be finite, got {lane_wander}")
     return plan_visit(_campus(scene), seed, "train", loop, frames_per_loop, None, None, lane_wander)
