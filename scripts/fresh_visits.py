@@ -31,40 +31,12 @@ ROOT = Path(__file__).resolve().parents[1]
 # 0 trains, 11 validates the shipped model; 101, 7, 23, 42 ranked the recipe (docs/results.md); 5, 202 the tests'
 # visits; the refinement's verdicts (docs/results.md, 2026-12-20 and 2026-12-06): never drawn again, so the next
 # verdict is on other visits
-SPENT = {
-    0,
-    5,
-    7,
-    11,
-    23,
-    42,
-    101,
-    202,
-    307008,
-    445811,
-    936886,
-    733135,
-    107868,
-    370004,
-    177925,
-    600629,
-    740804,
-    762581,
-    939547,
-    526530,
-    342913,
-    570627,
-    193802,
-    711590,
-    684805,
-    794529,
-    695689,
-    164404,
-    978398,
-    877148,
-    728843,
-    306382,
-}
+# fmt: off
+SPENT = {0, 5, 7, 11, 23, 42, 101, 202,
+         307008, 445811, 936886, 733135, 107868, 370004, 177925, 600629,  # refinement, EPnP (2026-12-20)
+         740804, 762581, 939547, 526530, 342913, 570627, 193802, 711590,  # refinement, AP3P (2026-12-06)
+         684805, 794529, 695689, 164404, 978398, 877148, 728843, 306382}  # AP3P, inliers again (2026-12-06)
+# fmt: on
 COLUMNS = [
     ("t [m]", "pose", "median_translation_m", 1, "{:.3f}"),
     ("R [deg]", "pose", "median_rotation_deg", 1, "{:.2f}"),

@@ -1,9 +1,8 @@
 """Camera pose from 2D-3D correspondences: AP3P in RANSAC, Levenberg-Marquardt on the inliers, the inliers again
 of the refined pose and Levenberg-Marquardt on them, and the covariance.
 
-AP3P rather than EPnP as RANSAC's minimal solver (docs/refinement.md, "PnP"): on validation seed 11 as accurate
-(98.0 % of frames within 0.1 m / 1 deg with either; median 10 mm against 9 mm) at a third of the time (4.5 ms against
-14 ms for ~180 correspondences: a faster solver on 4 points instead of 5, so fewer iterations for the same confidence).
+AP3P rather than EPnP as RANSAC's minimal solver (docs/refinement.md, "PnP"): as accurate on the validation visits at
+a third of the time (a faster solver on 4 points instead of 5, so fewer iterations for the same confidence).
 
 The covariance is the Gauss-Newton one, ``sigma^2 (J^T J)^-1`` with ``sigma^2`` the inliers' mean squared
 reprojection residual (``2n - 6`` degrees of freedom), in the parameters of ROS's ``pose_with_covariance``:
