@@ -46,7 +46,7 @@ def probe_batch(trainer) -> dict[str, torch.Tensor]:
 @torch.no_grad()
 def probe_losses(model, criterion, batch: dict[str, torch.Tensor], stage: str) -> dict[str, float]:
     """The raw loss terms (``parts``, not the learned weighting) of ``model`` on ``batch`` (module doc)."""
-    from vlocnetpp_core.training.trainer import forward_stage
+    from vlocnetpp_core.training.validation import forward_stage
 
     probe = copy.deepcopy(model).train()
     for m in probe.modules():

@@ -198,7 +198,7 @@ def test_validation_counts_every_training_stride_and_calibrates_at_the_first(tin
     one spacing) and calibrates the covariances from the stride-1 clips only (the camera's own frame spacing)."""
     from vlocnetpp_core.data import ClipDataset, make_transform, open_dataset
     from vlocnetpp_core.training.losses import VLocNetLoss
-    from vlocnetpp_core.training.trainer import validate
+    from vlocnetpp_core.training.validation import validate
 
     index = open_dataset(
         tiny[0], None, "test"

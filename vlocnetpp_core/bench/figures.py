@@ -240,7 +240,7 @@ def train_step(config: str, device: str, repetitions: int, warmup: int, batch: i
     from vlocnetpp_core.model import VLocNetPP, load_model_config, train_only
     from vlocnetpp_core.model.stages import stage_tasks
     from vlocnetpp_core.training.losses import VLocNetLoss
-    from vlocnetpp_core.training.trainer import forward_stage
+    from vlocnetpp_core.training.validation import forward_stage
 
     cfg = load_model_config(config)
     (w, h), gen = cfg.input_size, torch.Generator().manual_seed(0)
