@@ -37,15 +37,15 @@ slot of a good frame, nor a place among the depth images kept for matching), and
 a reference to a refused message, its buffer or its exception once the callback or the frame
 is done; counters and throttled log keys are bounded (see :mod:`vlocnetpp_ros.diagnostics`).
 Once a second, after the diagnostics, the heap pages freed since are handed back to the system
-(glibc ``malloc_trim``), so the resident memory follows the memory in use after bursts of large
-messages instead of staying at their high-water mark. The ``localizer`` program gives its Fast DDS
+(glibc ``malloc_trim``, :mod:`vlocnetpp_ros.heap`), so the resident memory follows the memory in use after bursts
+of large messages instead of staying at their high-water mark; the diagnostics say how much that is
+(``heap_in_use_mb``). The ``localizer`` program gives its Fast DDS
 readers the ``DYNAMIC`` history memory policy (:mod:`vlocnetpp_ros.dds_profile`), so the transport's
 buffers stay bounded too, whatever the history depth of the publishers.
 """
 
 from __future__ import annotations
 
-import ctypes
 import gc
 import sys
 import threading
@@ -54,7 +54,7 @@ from collections import deque
 from pathlib import Path
 
 import rclpy
-from diagnostic_msgs.msg import DiagnosticArray
+from diagnostic_msgs.msg import DiagnosticArray, KeyValue
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import ParameterDescriptor
@@ -74,6 +74,7 @@ from vlocnetpp_core.inference.preprocess import FrameError
 from vlocnetpp_core.threads import resolve_threads, use_threads
 from vlocnetpp_ros import conversions, dds_profile
 from vlocnetpp_ros.diagnostics import NodeStats, ThrottledLog
+from vlocnetpp_ros.heap import Heap
 from vlocnetpp_ros.mailbox import LatestMailbox
 from vlocnetpp_ros.parameters import PARAMETERS, check_parameters, default_checkpoint, extrinsics_of, map_of
 
@@ -162,7 +163,7 @@ class LocalizerNode(Node):
         self._incompatible: set[str] = set()
         for topic in self._inputs:
             self._subscribe(topic)
-        self._malloc_trim = _libc_malloc_trim()
+        self._heap = Heap()
         self.create_timer(1.0, self._publish_diagnostics)
         self.create_timer(0.5, self._resubscribe_incompatible)
 
@@ -333,23 +334,17 @@ class LocalizerNode(Node):
 
     def _publish_diagnostics(self) -> None:
         status = self.stats.status("vlocnetpp_ros: localizer", self.get_fully_qualified_name())
+        in_use = self._heap.in_use_mb()
+        if in_use is not None:
+            status.values.append(KeyValue(key="heap_in_use_mb", value=f"{in_use:.1f}"))
         self.diag_pub.publish(DiagnosticArray(header=Header(stamp=self.get_clock().now().to_msg()), status=[status]))
-        if self._malloc_trim is not None:
-            self._malloc_trim(0)  # ~0.05 ms; ctypes releases the GIL meanwhile
+        self._heap.trim()
 
     def close(self, timeout_s: float = 1.5) -> None:
         """Stop the worker (waits for the frame in progress, at most ``timeout_s``)."""
         self._stop.set()
         self._mailbox.close()
         self._worker.join(timeout_s)
-
-
-def _libc_malloc_trim():
-    """glibc's ``malloc_trim`` (return freed heap pages to the system), or None on another C library."""
-    try:
-        return ctypes.CDLL(None).malloc_trim
-    except (OSError, AttributeError):
-        return None
 
 
 def _stamp_key(stamp) -> tuple[int, int]:
