@@ -11,8 +11,12 @@ Conventions (docs/conventions.md, Poses and frames; Relative pose), pinned here 
 * Rotation error ``2 acos(|<q1, q2>|)`` in degrees; translation error is Euclidean metres.
 
 Every function takes torch tensors or numpy arrays with any number of leading batch
-dimensions and returns the same kind it was given (numpy in, numpy out; the computation
-runs in torch so there is one implementation).
+dimensions and returns the same kind it was given (numpy in, numpy out, float64). Numpy inputs of
+the pose algebra (quaternions, SE(3), errors) run in :mod:`vlocnetpp_core.geometry_np`, the one
+numpy implementation, which loads no torch (``vlocnetpp extract`` imports it directly); the torch
+bodies here serve tensors (autograd, GPU). The two agree to ~1e-14 (torch's ``cross``, 3-vector
+``norm`` and ``acos`` round differently in the last bit; ``test/test_geometry.py``). The pinhole
+functions run numpy inputs in torch, float64.
 """
 
 from __future__ import annotations
@@ -23,6 +27,9 @@ from typing import TypeVar
 
 import numpy as np
 import torch
+
+from vlocnetpp_core import geometry_np
+from vlocnetpp_core.geometry_np import quat_from_ros, quat_to_ros
 
 Array = TypeVar("Array", torch.Tensor, np.ndarray)
 
@@ -51,8 +58,22 @@ __all__ = [
 ]
 
 
+def _numpy_in_geometry_np(fn: Callable) -> Callable:
+    """Send a call with numpy arrays to the function of the same name in :mod:`geometry_np`; tensors run ``fn``."""
+    numpy_fn = getattr(geometry_np, fn.__name__)
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        if any(isinstance(a, np.ndarray) for a in args):
+            return numpy_fn(*args, **kwargs)
+        return fn(*args, **kwargs)
+
+    return wrapper
+
+
 def _numpy_compatible(fn: Callable) -> Callable:
-    """Let a torch function accept numpy arrays: numpy inputs run in float64 and come back as numpy."""
+    """Let a torch function (the pinhole ones) accept numpy arrays: numpy inputs run in float64 and come back as
+    numpy."""
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
@@ -70,7 +91,7 @@ def _numpy_compatible(fn: Callable) -> Callable:
 # --------------------------------------------------------------------------- quaternions
 
 
-@_numpy_compatible
+@_numpy_in_geometry_np
 def quat_normalize(q: Array, eps: float = 1e-12) -> Array:
     """Unit quaternion ``(..., 4)`` in ``(w, x, y, z)`` on the ``w >= 0`` hemisphere.
 
@@ -85,7 +106,7 @@ def quat_normalize(q: Array, eps: float = 1e-12) -> Array:
     return torch.cat((q[..., :1].abs(), q[..., 1:]), -1)  # only flips a |w| <= 1e-12
 
 
-@_numpy_compatible
+@_numpy_in_geometry_np
 def quat_mul(a: Array, b: Array) -> Array:
     """Hamilton product ``a * b`` of ``(..., 4)`` quaternions ``(w, x, y, z)`` (not re-normalised)."""
     aw, ax, ay, az = a.unbind(-1)
@@ -101,13 +122,13 @@ def quat_mul(a: Array, b: Array) -> Array:
     )
 
 
-@_numpy_compatible
+@_numpy_in_geometry_np
 def quat_inverse(q: Array) -> Array:
     """Inverse of a unit quaternion (its conjugate), ``(..., 4)``."""
     return q * torch.tensor([1.0, -1.0, -1.0, -1.0], dtype=q.dtype, device=q.device)
 
 
-@_numpy_compatible
+@_numpy_in_geometry_np
 def quat_rotate(q: Array, v: Array) -> Array:
     """Rotate vectors ``v (..., 3)`` by unit quaternions ``q (..., 4)``."""
     u, v = torch.broadcast_tensors(q[..., 1:], v)
@@ -115,7 +136,7 @@ def quat_rotate(q: Array, v: Array) -> Array:
     return v + 2.0 * (q[..., :1] * uv + torch.cross(u, uv, dim=-1))
 
 
-@_numpy_compatible
+@_numpy_in_geometry_np
 def quat_to_matrix(q: Array) -> Array:
     """Rotation matrices ``(..., 3, 3)`` of (normalised) quaternions ``(..., 4)``."""
     q = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
@@ -136,7 +157,7 @@ def quat_to_matrix(q: Array) -> Array:
     ).reshape(q.shape[:-1] + (3, 3))
 
 
-@_numpy_compatible
+@_numpy_in_geometry_np
 def matrix_to_quat(R: Array) -> Array:
     """Unit quaternions ``(..., 4)`` (``w >= 0``) of rotation matrices ``(..., 3, 3)``.
 
@@ -185,20 +206,10 @@ def matrix_to_quat(R: Array) -> Array:
     return quat_normalize(q)
 
 
-def quat_to_ros(q: Array) -> Array:
-    """Core ``(w, x, y, z)`` -> ROS ``(x, y, z, w)``."""
-    return q[..., [1, 2, 3, 0]]
-
-
-def quat_from_ros(q: Array) -> Array:
-    """ROS ``(x, y, z, w)`` -> core ``(w, x, y, z)``."""
-    return q[..., [3, 0, 1, 2]]
-
-
 # --------------------------------------------------------------------------- SE(3)
 
 
-@_numpy_compatible
+@_numpy_in_geometry_np
 def pose_to_matrix(t: Array, q: Array) -> Array:
     """Homogeneous ``(..., 4, 4)`` matrices of poses ``t (..., 3)``, ``q (..., 4)``."""
     T = torch.zeros(t.shape[:-1] + (4, 4), dtype=t.dtype, device=t.device)
@@ -208,26 +219,26 @@ def pose_to_matrix(t: Array, q: Array) -> Array:
     return T
 
 
-@_numpy_compatible
+@_numpy_in_geometry_np
 def matrix_to_pose(T: Array) -> tuple[Array, Array]:
     """``(t (..., 3), q (..., 4))`` of homogeneous matrices ``(..., 4, 4)``."""
     return T[..., :3, 3].clone(), matrix_to_quat(T[..., :3, :3])
 
 
-@_numpy_compatible
+@_numpy_in_geometry_np
 def pose_compose(t1: Array, q1: Array, t2: Array, q2: Array) -> tuple[Array, Array]:
     """``T1 T2``: apply ``T2`` then ``T1``. Returns ``(t, q)`` with ``q`` normalised, ``w >= 0``."""
     return t1 + quat_rotate(q1, t2), quat_normalize(quat_mul(q1, q2))
 
 
-@_numpy_compatible
+@_numpy_in_geometry_np
 def pose_inverse(t: Array, q: Array) -> tuple[Array, Array]:
     """``T^{-1}`` as ``(t, q)``."""
     qi = quat_inverse(q)
     return -quat_rotate(qi, t), quat_normalize(qi)
 
 
-@_numpy_compatible
+@_numpy_in_geometry_np
 def relative_pose(t_prev: Array, q_prev: Array, t_cur: Array, q_cur: Array) -> tuple[Array, Array]:
     """``T_rel = T_prev^{-1} T_cur``: camera t expressed in camera t-1 (SE(3) form, docs/conventions.md, Relative
     pose)."""
@@ -235,13 +246,13 @@ def relative_pose(t_prev: Array, q_prev: Array, t_cur: Array, q_cur: Array) -> t
     return pose_compose(ti, qi, t_cur, q_cur)
 
 
-@_numpy_compatible
+@_numpy_in_geometry_np
 def translation_error(t1: Array, t2: Array) -> Array:
     """Euclidean distance ``(...)`` in metres."""
     return (t1 - t2).norm(dim=-1)
 
 
-@_numpy_compatible
+@_numpy_in_geometry_np
 def rotation_error_deg(q1: Array, q2: Array) -> Array:
     """Angle ``2 acos(|<q1, q2>|)`` in degrees between (normalised) quaternions, ``(...)``."""
     q1 = q1 / q1.norm(dim=-1, keepdim=True).clamp_min(1e-12)
