@@ -188,7 +188,8 @@ def _first_line(err: BaseException) -> str:
 
 
 def _image_tensor(rgb: np.ndarray, size: tuple[int, int], device: str) -> torch.Tensor:
-    from vlocnetpp_core.inference.preprocess import image_tensor, resize_image
+    from vlocnetpp_core.inference.network_input import image_tensor
+    from vlocnetpp_core.inference.preprocess import resize_image
 
     return image_tensor(resize_image(rgb, size)).to(device)
 
