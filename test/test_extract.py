@@ -396,15 +396,29 @@ def test_interrupt_while_writing_leaves_nothing(png_bag, tmp_path, monkeypatch):
     assert len(calls) == 3 and list(tmp_path.iterdir()) == []
 
 
-def test_extract_loads_neither_the_localizer_nor_the_model():
-    """`vlocnetpp extract` reads bags and writes files: building its parser imports no localizer, checkpoint or network
-    (extrinsics names the localizer's result type for annotations only). Torch itself still comes with
-    vlocnetpp_core.geometry, whose one implementation of the pose algebra runs in torch for numpy inputs too."""
-    code = (
-        "import sys; from vlocnetpp_core.cli import build_parser; build_parser('extract'); "
-        "print(sorted(m for m in ('vlocnetpp_core.inference.localizer', "
-        "'vlocnetpp_core.inference.checkpoint', 'vlocnetpp_core.model') if m in sys.modules))"
+HEAVY = ("torch", "vlocnetpp_core.inference.localizer", "vlocnetpp_core.inference.checkpoint", "vlocnetpp_core.model")
+
+
+def _heavy_modules_after(code: str) -> list[str]:
+    """Which of :data:`HEAVY` a fresh interpreter has loaded after running ``code`` (the last stdout line)."""
+    code += f"\nimport json, sys; print(json.dumps(sorted(m for m in {HEAVY!r} if m in sys.modules)))"
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def test_extract_loads_neither_torch_nor_the_localizer_nor_the_model():
+    """`vlocnetpp extract` reads bags and writes files: its module and its `--help` import no torch, localizer,
+    checkpoint or network (the pose algebra comes from geometry_np; extrinsics names the localizer's result type for
+    annotations only)."""
+    assert _heavy_modules_after("import vlocnetpp_core.bag.extract_cli") == []
+    help_code = (
+        "from vlocnetpp_core.cli import main\n"
+        "try:\n    main(['extract', '--help'])\nexcept SystemExit as e:\n    assert e.code == 0, e.code"
     )
-    assert (
-        subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip() == "[]"
-    )
+    assert _heavy_modules_after(help_code) == []
+
+
+def test_an_extract_run_loads_no_torch(png_bag, tmp_path):
+    """The whole command, the read-back of the written dataset included."""
+    argv = [str(png_bag), str(tmp_path / "ds"), "--tf", "map", "camera", "--no-progress"]
+    assert _heavy_modules_after(f"from vlocnetpp_core.cli import main; assert main(['extract', *{argv!r}]) == 0") == []
