@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from vlocnetpp_core import geometry_np
+from vlocnetpp_core import geometry
 
 ID_STRIDE = 10000
 SPLITS = ("train", "test")
@@ -81,7 +81,7 @@ def _moved_enough(t: np.ndarray, q: np.ndarray, t_ref: np.ndarray, q_ref: np.nda
         return True
     if sel.min_motion_m > 0 and np.linalg.norm(t - t_ref) >= sel.min_motion_m:
         return True
-    return sel.min_motion_deg is not None and float(geometry_np.rotation_error_deg(q, q_ref)) >= sel.min_motion_deg
+    return sel.min_motion_deg is not None and float(geometry.rotation_error_deg(q, q_ref)) >= sel.min_motion_deg
 
 
 def _sequence_runs(order: np.ndarray, stamps: np.ndarray, test: np.ndarray, max_gap_s: float) -> list[list[int]]:

@@ -16,7 +16,7 @@ import numpy as np
 from rosbags.typesys import Stores, get_typestore
 
 from vlocnetpp_core.camera.intrinsics import Intrinsics
-from vlocnetpp_core.geometry_np import quat_from_ros, quat_to_ros
+from vlocnetpp_core.geometry import quat_from_ros, quat_to_ros
 from vlocnetpp_core.inference import preprocess
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)

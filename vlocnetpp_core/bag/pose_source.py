@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from vlocnetpp_core import geometry_np
+from vlocnetpp_core import geometry
 from vlocnetpp_core.bag import messages
 from vlocnetpp_core.errors import UserError
 
@@ -56,7 +56,7 @@ class PoseTrack:
         last = np.append(s[1:] != s[:-1], True)  # the last of each run of equal stamps
         keep = order[last]
         return cls(
-            name, s[last], np.asarray(t, np.float64)[keep], geometry_np.quat_normalize(np.asarray(q, np.float64)[keep])
+            name, s[last], np.asarray(t, np.float64)[keep], geometry.quat_normalize(np.asarray(q, np.float64)[keep])
         )
 
     @classmethod
@@ -65,7 +65,7 @@ class PoseTrack:
             name,
             np.zeros(1, np.int64),
             np.asarray(t, np.float64)[None],
-            geometry_np.quat_normalize(np.asarray(q, np.float64))[None],
+            geometry.quat_normalize(np.asarray(q, np.float64))[None],
             True,
         )
 
@@ -103,7 +103,7 @@ class PoseTrack:
         """SLERP of the rotations at ``query`` stamps (all strictly inside the sample range)."""
         times = (self.stamps - self.stamps[0]) / 1e9
         slerp = Slerp(times, Rotation.from_quat(self.q, scalar_first=True))
-        return geometry_np.quat_normalize(slerp((query - self.stamps[0]) / 1e9).as_quat(scalar_first=True))
+        return geometry.quat_normalize(slerp((query - self.stamps[0]) / 1e9).as_quat(scalar_first=True))
 
 
 @dataclass
@@ -129,8 +129,8 @@ class PoseChain:
             reasons = [a if a is not None else b for a, b in zip(reasons, why, strict=True)]
             te, qe = np.nan_to_num(te), np.where(np.isnan(qe), [1.0, 0.0, 0.0, 0.0], qe)
             if inverted:
-                te, qe = geometry_np.pose_inverse(te, qe)
-            t, q = geometry_np.pose_compose(t, q, te, qe)
+                te, qe = geometry.pose_inverse(te, qe)
+            t, q = geometry.pose_compose(t, q, te, qe)
         bad = np.array([r is not None for r in reasons], dtype=bool)
         t[bad], q[bad] = np.nan, np.nan
         return t, q, reasons
@@ -143,7 +143,7 @@ class PoseChain:
         t, q, reasons = self.at(stamps_ns, max_gap_s)
         if extrinsics is not None:
             ok = np.array([r is None for r in reasons], dtype=bool)
-            t[ok], q[ok] = geometry_np.pose_compose(t[ok], q[ok], *extrinsics)
+            t[ok], q[ok] = geometry.pose_compose(t[ok], q[ok], *extrinsics)
         return t, q, reasons
 
     def dynamic_span_ns(self) -> tuple[int, int] | None:

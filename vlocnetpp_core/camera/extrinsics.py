@@ -37,7 +37,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from vlocnetpp_core import geometry_np
+from vlocnetpp_core import geometry
 from vlocnetpp_core.errors import UserError
 
 if TYPE_CHECKING:  # an annotation only: extract (which reads extrinsics) does not load the localizer
@@ -95,7 +95,7 @@ class CameraExtrinsics:
                 f"{what}: the quaternion (qw, qx, qy, qz) = {v[3:].tolist()} has norm {norm:.6g}, "
                 f"not 1 within {tolerance:g}"
             )
-        return cls(t=v[:3].copy(), q=geometry_np.quat_normalize(v[3:]))
+        return cls(t=v[:3].copy(), q=geometry.quat_normalize(v[3:]))
 
     @property
     def is_identity(self) -> bool:
@@ -105,12 +105,12 @@ class CameraExtrinsics:
     @cached_property
     def matrix(self) -> np.ndarray:
         """``(4, 4)`` ``T_base,camera``."""
-        return geometry_np.pose_to_matrix(self.t, self.q)
+        return geometry.pose_to_matrix(self.t, self.q)
 
     @cached_property
     def inverse(self) -> np.ndarray:
         """``(4, 4)`` ``T_camera,base``."""
-        return geometry_np.pose_to_matrix(*geometry_np.pose_inverse(self.t, self.q))
+        return geometry.pose_to_matrix(*geometry.pose_inverse(self.t, self.q))
 
     @cached_property
     def adjoint(self) -> np.ndarray:
@@ -145,7 +145,7 @@ def base_pose(t_wc: np.ndarray, q_wc: np.ndarray, ext: CameraExtrinsics) -> tupl
 
 def base_pose_covariance(covariance: np.ndarray, q_wc: np.ndarray, ext: CameraExtrinsics) -> np.ndarray:
     """Covariance of :func:`base_pose` from that of the camera pose with orientation ``q_wc`` (module convention)."""
-    R = geometry_np.quat_to_matrix(np.asarray(q_wc, dtype=np.float64))
+    R = geometry.quat_to_matrix(np.asarray(q_wc, dtype=np.float64))
     return transform_covariance(covariance, frame_change_jacobian(R, R @ ext.inverse[:3, :3], ext.adjoint))
 
 
@@ -157,7 +157,7 @@ def base_odometry(t_oc: np.ndarray, q_oc: np.ndarray, ext: CameraExtrinsics) -> 
 
 def base_odometry_covariance(covariance: np.ndarray, q_oc: np.ndarray, ext: CameraExtrinsics) -> np.ndarray:
     """Covariance of :func:`base_odometry` from that of the camera odometry with orientation ``q_oc``."""
-    R = geometry_np.quat_to_matrix(np.asarray(q_oc, dtype=np.float64))
+    R = geometry.quat_to_matrix(np.asarray(q_oc, dtype=np.float64))
     R_e = ext.matrix[:3, :3]
     return transform_covariance(covariance, frame_change_jacobian(R, R_e @ R @ R_e.T, ext.adjoint))
 
@@ -197,8 +197,8 @@ def to_base_frame(result: LocalizerResult, ext: CameraExtrinsics) -> LocalizerRe
 
 def _moved(t: np.ndarray, q: np.ndarray, left: np.ndarray, ext: CameraExtrinsics) -> tuple[np.ndarray, np.ndarray]:
     """``left T ext^-1`` for poses ``T = (t (..., 3), q (..., 4))``, as ``(t', q')``."""
-    T = geometry_np.pose_to_matrix(np.asarray(t, dtype=np.float64), np.asarray(q, dtype=np.float64))
-    return geometry_np.matrix_to_pose(left @ T @ ext.inverse)
+    T = geometry.pose_to_matrix(np.asarray(t, dtype=np.float64), np.asarray(q, dtype=np.float64))
+    return geometry.matrix_to_pose(left @ T @ ext.inverse)
 
 
 def _adjoint(R: np.ndarray, t: np.ndarray) -> np.ndarray:

@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vlocnetpp_core import geometry_np
+from vlocnetpp_core import geometry
 from vlocnetpp_core.camera.intrinsics import DEEPLOC_DEFAULT, Intrinsics
 from vlocnetpp_core.data import imageio
 from vlocnetpp_core.data.sample import DatasetIndex, FrameRecord, resolve_intrinsics, sequence_stamps
@@ -148,7 +148,7 @@ def split_sequences(
     if len(ids) == 0:
         return []
     step_m = np.linalg.norm(np.diff(t, axis=0), axis=1)
-    step_deg = geometry_np.rotation_error_deg(q[:-1], q[1:])
+    step_deg = geometry.rotation_error_deg(q[:-1], q[1:])
     cut = (np.diff(ids) > max_id_gap) | (step_m > max_jump_m) | (step_deg > max_jump_deg)
     starts = [0, *(np.nonzero(cut)[0] + 1).tolist(), len(ids)]
     return [range(a, b) for a, b in zip(starts[:-1], starts[1:], strict=True)]
@@ -204,7 +204,7 @@ def read_deeploc(
         raise DataError(split_dir / "poses.txt", "no pose matches an image in LeftImages/ (frame numbers differ?)")
     ids = np.array([p[0] for p in posed])
     t = np.stack([p[2] for p in posed])
-    q = geometry_np.quat_normalize(np.stack([p[3] for p in posed]))
+    q = geometry.quat_normalize(np.stack([p[3] for p in posed]))
     sequences = split_sequences(ids, t, q, max_id_gap, max_jump_m, max_jump_deg)
     stamps = np.concatenate(sequence_stamps([len(s) for s in sequences], RATE_HZ))
 
