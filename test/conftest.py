@@ -101,10 +101,11 @@ def install_env(install: Path) -> dict[str, str]:
     return env
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def tiny(tmp_path_factory) -> tuple[Path, Path]:
     """A 3-loop synthetic campus at 64x48 and a lite config at that input size: the data of the `vlocnetpp train`
-    tests (``test_train*.py``; rendered once per module). ``test_tool_errors.py`` has a smaller one of its own."""
+    tests (``test_train*.py``; rendered once per session, read only: training writes nothing into it).
+    ``test_tool_errors.py`` has a smaller one of its own."""
     import yaml
 
     from vlocnetpp_core.model import load_model_config
