@@ -18,7 +18,8 @@ import torch
 
 from vlocnetpp_core.data.dataset import open_dataset
 from vlocnetpp_core.inference.checkpoint import load_checkpoint
-from vlocnetpp_core.inference.preprocess import image_tensor, resize_image
+from vlocnetpp_core.inference.network_input import image_tensor
+from vlocnetpp_core.inference.preprocess import resize_image
 
 
 def main() -> None:

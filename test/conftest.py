@@ -99,3 +99,23 @@ def install_env(install: Path) -> dict[str, str]:
     env["PYTHONPATH"] = f"{site}:{env.get('PYTHONPATH', '')}".rstrip(":")
     env["AMENT_PREFIX_PATH"] = f"{prefix}:{env.get('AMENT_PREFIX_PATH', '')}".rstrip(":")
     return env
+
+
+@pytest.fixture(scope="session")
+def tiny(tmp_path_factory) -> tuple[Path, Path]:
+    """A 3-loop synthetic campus at 64x48 and a lite config at that input size: the data of the `vlocnetpp train`
+    tests (``test_train*.py``; rendered once per session, read only: training writes nothing into it).
+    ``test_tool_errors.py`` has a smaller one of its own."""
+    import yaml
+
+    from vlocnetpp_core.model import load_model_config
+    from vlocnetpp_core.synth import render_dataset
+
+    root = tmp_path_factory.mktemp("train")
+    data = root / "campus"
+    render_dataset(data, seed=0, train_loops=3, test_loops=1, frames_per_loop=10, size=(64, 48), progress=False)
+    cfg = load_model_config("lite").to_dict()
+    cfg["input_size"] = [64, 48]
+    config = root / "tiny.yaml"
+    config.write_text(yaml.safe_dump(cfg))
+    return data, config

@@ -4,14 +4,12 @@ datasets."""
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from bag_fixtures import H, W, truth, write_sqlite_bag
 from data_fixtures import K_SMALL, trajectory, write_deeploc_split
-from rosbags.rosbag2 import StoragePlugin, Writer
 
 from vlocnetpp_core import geometry
 from vlocnetpp_core.bag import extract_writer, messages
@@ -149,78 +147,12 @@ def test_test_ranges_split_and_force(png_bag, tmp_path, capsys):
 
 # --------------------------------------------------------------------------- interpolation (a hand-made sqlite3 bag)
 
-W, H = 16, 12
-V = np.array([0.8, -0.3, 0.1])  # m/s
-AXIS = np.array([0.2, 0.3, 0.9]) / np.linalg.norm([0.2, 0.3, 0.9])
-OMEGA = np.deg2rad(40.0)  # rad/s about AXIS: SLERP and linear interpolation are exact on this trajectory
-
-
-def _truth(s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``T_odom,base`` at times ``s`` (seconds): constant velocity, constant rate about a fixed axis."""
-    s = np.asarray(s, dtype=np.float64)
-    half = OMEGA * s / 2
-    q = np.concatenate((np.cos(half)[:, None], np.sin(half)[:, None] * AXIS), 1)
-    return np.array([1.0, 2.0, 0.5]) + s[:, None] * V, geometry.quat_normalize(q)
-
-
-def _write_sqlite_bag(path: Path, image_s: np.ndarray, pose_s: np.ndarray, encoding: str = "mono8") -> None:
-    """A rosbag2 folder (sqlite3 storage): mono8 images (value 10 k) and camera info at ``image_s``, Odometry on /odom
-    at ``pose_s``, and 16UC1 depth (1000 + 100 k mm) 5 ms after the even images and 30 ms after the odd ones."""
-    ts = messages.TYPESTORE
-    writer = Writer(path, version=9, storage_plugin=StoragePlugin.SQLITE3)
-    writer.open()
-    conns = {
-        t: writer.add_connection(t, ty, typestore=ts)
-        for t, ty in (
-            ("/camera/image_raw", messages.IMAGE),
-            ("/camera/camera_info", messages.CAMERA_INFO),
-            ("/odom", messages.ODOMETRY),
-            ("/camera/depth/image_raw", messages.IMAGE),
-        )
-    }
-    K = Intrinsics(20.0, 20.0, 7.5, 5.5, W, H)
-    t, q = _truth(pose_s)
-    items = [
-        (
-            messages.seconds_to_ns(s),
-            "/odom",
-            messages.odometry(
-                messages.seconds_to_ns(s),
-                "odom",
-                "base_link",
-                t[k],
-                q[k],
-                np.zeros(3),
-                np.zeros(3),
-                np.eye(6),
-                np.eye(6),
-            ),
-        )
-        for k, s in enumerate(pose_s)
-    ]
-    for k, s in enumerate(image_s):
-        ns = messages.seconds_to_ns(s)
-        img = messages.image(ns, "camera", np.full((H, W), 10 * k % 256, np.uint8), "mono8")
-        img.encoding = encoding
-        items += [(ns, "/camera/image_raw", img), (ns, "/camera/camera_info", messages.camera_info(ns, "camera", K))]
-        dns = messages.seconds_to_ns(s + (0.005 if k % 2 == 0 else 0.03))
-        items.append(
-            (
-                dns,
-                "/camera/depth/image_raw",
-                messages.image(dns, "camera", np.full((H, W), 1000 + 100 * k, np.uint16), "16UC1"),
-            )
-        )
-    for ns, topic, msg in sorted(items, key=lambda x: x[0]):
-        writer.write(conns[topic], ns, messages.serialize(msg))
-    writer.close()
-
 
 def test_pose_topic_at_another_rate_is_interpolated(tmp_path, capsys):
     image_s = np.round(1.0 + 0.1 * np.arange(21), 6)  # 10 Hz, 1.0 .. 3.0 s
     pose_s = 1.25 + np.arange(11) / 7  # 7 Hz, 1.25 .. 2.68 s
     pose_s = pose_s[(pose_s < 1.8) | (pose_s > 2.2)]  # a 0.43 s hole
-    _write_sqlite_bag(tmp_path / "bag", image_s, pose_s)
+    write_sqlite_bag(tmp_path / "bag", image_s, pose_s)
     out = tmp_path / "ds"
     argv = [
         "extract",
@@ -249,7 +181,7 @@ def test_pose_topic_at_another_rate_is_interpolated(tmp_path, capsys):
     names = (out / "DeepLoc/train/stamps.txt").read_text().split()
     stamps = np.array([int(v) for v in names[1::2]]) / 1e9
     assert len(index) == len(stamps) == 21 - before - after - hole and len(index.sequences) == 1
-    t_b, q_b = _truth(stamps)
+    t_b, q_b = truth(stamps)
     t_exp, q_exp = geometry.pose_compose(t_b, q_b, *_ext())
     got_t = np.array([r.t for r in index.records])
     got_q = np.array([r.q for r in index.records])
@@ -338,7 +270,7 @@ def test_plan_stride_min_motion_and_sequences():
 @pytest.fixture(scope="module")
 def small_bag(tmp_path_factory) -> Path:
     path = tmp_path_factory.mktemp("small") / "bag"
-    _write_sqlite_bag(path, np.round(1.0 + 0.1 * np.arange(5), 6), 0.9 + 0.1 * np.arange(8))
+    write_sqlite_bag(path, np.round(1.0 + 0.1 * np.arange(5), 6), 0.9 + 0.1 * np.arange(8))
     return path
 
 
@@ -368,11 +300,11 @@ def test_missing_tf_frame_is_named(png_bag, tmp_path, capsys):
 
 
 def test_unsupported_encoding_and_no_pose(tmp_path, capsys):
-    _write_sqlite_bag(tmp_path / "yuv", np.array([1.0, 1.1]), np.array([1.0, 1.1]), encoding="yuv422")
+    write_sqlite_bag(tmp_path / "yuv", np.array([1.0, 1.1]), np.array([1.0, 1.1]), encoding="yuv422")
     assert main(["extract", str(tmp_path / "yuv"), str(tmp_path / "ds"), "--pose-topic", "/odom", "--no-progress"]) == 2
     err = capsys.readouterr().err
     assert "/camera/image_raw" in err and "'yuv422'" in err
-    _write_sqlite_bag(tmp_path / "late", np.array([1.0, 1.1]), np.array([5.0, 5.1]))
+    write_sqlite_bag(tmp_path / "late", np.array([1.0, 1.1]), np.array([5.0, 5.1]))
     assert (
         main(["extract", str(tmp_path / "late"), str(tmp_path / "ds"), "--pose-topic", "/odom", "--no-progress"]) == 2
     )
@@ -394,17 +326,3 @@ def test_interrupt_while_writing_leaves_nothing(png_bag, tmp_path, monkeypatch):
     monkeypatch.setattr(extract_writer.DeepLocWriter, "image", image)
     assert main(["extract", str(png_bag), str(tmp_path / "ds"), "--tf", "map", "camera", "--no-progress"]) == 130
     assert len(calls) == 3 and list(tmp_path.iterdir()) == []
-
-
-def test_extract_loads_neither_the_localizer_nor_the_model():
-    """`vlocnetpp extract` reads bags and writes files: building its parser imports no localizer, checkpoint or network
-    (extrinsics names the localizer's result type for annotations only). Torch itself still comes with
-    vlocnetpp_core.geometry, whose one implementation of the pose algebra runs in torch for numpy inputs too."""
-    code = (
-        "import sys; from vlocnetpp_core.cli import build_parser; build_parser('extract'); "
-        "print(sorted(m for m in ('vlocnetpp_core.inference.localizer', "
-        "'vlocnetpp_core.inference.checkpoint', 'vlocnetpp_core.model') if m in sys.modules))"
-    )
-    assert (
-        subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip() == "[]"
-    )

@@ -16,7 +16,8 @@ from vlocnetpp_core.camera.intrinsics import Intrinsics
 from vlocnetpp_core.errors import DataError, UserError
 from vlocnetpp_core.inference.checkpoint import save_checkpoint
 from vlocnetpp_core.inference.localizer import UNKNOWN_VARIANCE, Localizer
-from vlocnetpp_core.inference.preprocess import FrameError, network_input
+from vlocnetpp_core.inference.network_input import network_input
+from vlocnetpp_core.inference.preprocess import FrameError
 
 POSE_VAR = [0.04, 0.05, 0.06, 1e-3, 2e-3, 3e-3]
 ODO_VAR = [1e-3, 2e-3, 3e-3, 1e-5, 2e-5, 3e-5]

@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from vlocnetpp_core.camera.intrinsics import Intrinsics
+from vlocnetpp_core.inference.network_input import network_input
 from vlocnetpp_core.inference.preprocess import (
     DEPTH_ENCODINGS,
     IMAGE_ENCODINGS,
@@ -15,7 +16,6 @@ from vlocnetpp_core.inference.preprocess import (
     decode_compressed,
     decode_raw,
     depth_to_metres,
-    network_input,
     to_rgb,
 )
 

@@ -19,9 +19,9 @@ from vlocnetpp_core.cli import main
 from vlocnetpp_core.errors import DataError, UserError
 from vlocnetpp_core.inference.checkpoint import init_checkpoint, load_checkpoint, read_checkpoint_meta, save_checkpoint
 from vlocnetpp_core.inference.localizer import Localizer
+from vlocnetpp_core.inference.network_input import network_input
 from vlocnetpp_core.inference.onnx_backend import OnnxStep, onnx_step_for
 from vlocnetpp_core.inference.onnx_export import export_checkpoint, read_metadata, state_names
-from vlocnetpp_core.inference.preprocess import network_input
 from vlocnetpp_core.model import VLocNetPP, load_model_config
 
 POSE_TOL = 1e-4  # metres / quaternion components

@@ -1,6 +1,6 @@
 """The pose-only configuration (``semantic_stream: false``, ``config/lite_pose.yaml``) end to end: the network,
 the Localizer (torch and onnx), bag replay (in process and through the node) and evaluate-bag. Training on data without
-labels or depth is in ``test_train.py``, the node in ``test_node_outputs.py``."""
+labels or depth is in ``test_train_pose_only.py``, the node in ``test_node_outputs.py``."""
 
 from __future__ import annotations
 

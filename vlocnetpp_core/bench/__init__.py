@@ -97,7 +97,7 @@ def run_bench(settings: BenchSettings, device: str = "cpu", quick: bool = False,
     """
     import torch
 
-    from vlocnetpp_core.bench import figures
+    from vlocnetpp_core.bench import figures, paper_step
     from vlocnetpp_core.inference.checkpoint import init_checkpoint
 
     say = progress or (lambda _msg: None)
@@ -126,7 +126,7 @@ def run_bench(settings: BenchSettings, device: str = "cpu", quick: bool = False,
         times.update(synth)
         camera = figures.resize_all(frames, settings.camera_size)
         say("paper config: cached vs recompute vs ResNet-50")
-        paper = figures.paper_step(
+        paper = paper_step.paper_step(
             settings.paper_config,
             settings.paper_input_size,
             frames,

@@ -50,7 +50,8 @@ from vlocnetpp_core import geometry
 from vlocnetpp_core.camera.intrinsics import Intrinsics
 from vlocnetpp_core.errors import UserError
 from vlocnetpp_core.inference.checkpoint import calibration_variances, checkpoint_paths, load_checkpoint
-from vlocnetpp_core.inference.preprocess import FrameError, network_input, to_rgb
+from vlocnetpp_core.inference.network_input import network_input
+from vlocnetpp_core.inference.preprocess import FrameError, to_rgb
 
 BACKENDS = ("torch", "onnx")
 RESET_REASONS = ("start", "request", "stamp_backwards", "gap", "resolution_change", "intrinsics_change", "nan_output")

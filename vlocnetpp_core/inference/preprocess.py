@@ -1,15 +1,10 @@
-"""Camera frames in, network tensors out: decoding raw buffers by encoding, depth units, resizing.
+"""Camera frames in, numpy arrays out: decoding raw buffers by encoding, depth units, resizing. No torch here
+(``vlocnetpp extract`` uses it); :mod:`.network_input` makes the network's tensors of these arrays.
 
 Shared by the ROS node, bag replay and the offline tools, so every path
-turns the same bytes into the same tensor. No ROS types here: a raw image is its ``data``
+turns the same bytes into the same pixels. No ROS types here: a raw image is its ``data``
 buffer plus ``width``, ``height``, ``step`` (bytes per row, may include padding), ``encoding``
 and ``is_bigendian``, as in ``sensor_msgs/Image``.
-
-Network input: the image is resized to the network input size ``(W, H)`` of the checkpoint,
-anisotropically when the aspect ratios differ (no crop, so every pixel of the camera image has
-a class id after the mask is brought back), with the intrinsics following through
-:meth:`Intrinsics.resized`. Depth is resized with exact nearest neighbour so that invalid (0)
-pixels never blend into valid ones.
 
 Every problem with a frame raises :class:`FrameError`, whose ``reason`` is a short fixed
 keyword (counted by the node's diagnostics) and whose message says what was wrong.
@@ -27,9 +22,6 @@ from collections.abc import Iterable
 
 import cv2
 import numpy as np
-import torch
-
-from vlocnetpp_core.camera.intrinsics import Intrinsics
 
 # Colour encodings the localizer accepts: channels and the cv2 conversion to RGB (None: already RGB).
 IMAGE_ENCODINGS: dict[str, tuple[int, int | None]] = {
@@ -242,7 +234,7 @@ def depth_to_metres(depth: np.ndarray, encoding: str) -> np.ndarray:
     return metres
 
 
-# --------------------------------------------------------------------------- network input
+# --------------------------------------------------------------------------- resizing
 
 
 def resize_image(rgb: np.ndarray, size: tuple[int, int]) -> np.ndarray:
@@ -263,33 +255,3 @@ def resize_nearest(array: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     if array.shape[1] == w and array.shape[0] == h:
         return array
     return cv2.resize(array, (w, h), interpolation=cv2.INTER_NEAREST_EXACT)
-
-
-def image_tensor(rgb: np.ndarray) -> torch.Tensor:
-    """``(H, W, 3) uint8`` -> ``(1, 3, H, W) float32`` in ``[0, 1]`` (the model's input format)."""
-    return torch.from_numpy(np.ascontiguousarray(rgb)).permute(2, 0, 1)[None].float().div_(255.0)
-
-
-def network_input(
-    rgb: np.ndarray, size: tuple[int, int], intrinsics: Intrinsics, depth: np.ndarray | None = None
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
-    """Everything one model step needs, at the network input ``size = (W, H)``.
-
-    Args:
-        rgb: ``(H0, W0, 3) uint8`` camera image.
-        intrinsics: of the camera image (any resolution with the same field of view: it is scaled).
-        depth: ``(H0, W0) float32`` metres aligned with ``rgb`` (0 = invalid), or None.
-
-    Returns:
-        ``image (1, 3, H, W)`` in ``[0, 1]``, ``K (1, 3, 3)`` float32 at ``W x H``,
-        ``depth (1, 1, H, W)`` metres or None.
-    """
-    if depth is not None and depth.shape[:2] != rgb.shape[:2]:
-        raise FrameError(
-            "depth_size",
-            f"depth image is {depth.shape[1]}x{depth.shape[0]} but the colour image is {rgb.shape[1]}x{rgb.shape[0]}",
-        )
-    image = image_tensor(resize_image(rgb, size))
-    K = torch.from_numpy(intrinsics.resized(*size).matrix()).float()[None]
-    d = None if depth is None else torch.from_numpy(np.ascontiguousarray(resize_nearest(depth, size)))[None, None]
-    return image, K, d

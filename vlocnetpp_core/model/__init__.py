@@ -30,8 +30,8 @@ _EXPORTS = {
     "train_only": "stages",
     "trainable_parameters": "stages",
     "TASKS": "vlocnet",
-    "StepOutput": "vlocnet",
-    "StreamState": "vlocnet",
+    "StepOutput": "step_types",
+    "StreamState": "step_types",
     "VLocNetPP": "vlocnet",
 }
 __all__ = list(_EXPORTS)
@@ -54,7 +54,8 @@ if TYPE_CHECKING:
         train_only,
         trainable_parameters,
     )
-    from vlocnetpp_core.model.vlocnet import TASKS, StepOutput, StreamState, VLocNetPP  # noqa: F401
+    from vlocnetpp_core.model.step_types import StepOutput, StreamState  # noqa: F401
+    from vlocnetpp_core.model.vlocnet import TASKS, VLocNetPP  # noqa: F401
 
 
 __getattr__ = lazy_getattr(__name__, _EXPORTS, globals())

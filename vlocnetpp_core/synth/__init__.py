@@ -9,7 +9,8 @@
 
 Modules: ``layout`` (dimensions, class ids), ``campus`` (the scene: roads, buildings, landmarks,
 vegetation), ``campus_furniture`` and ``campus_ground`` (its street furniture and ground colour),
-``textures`` / ``ground`` (appearance), ``prims`` (geometry),
+``textures`` (the atlas, noise, sky), ``facades`` and ``object_strips`` (what is painted in it) and
+``ground`` (appearance), ``prims`` (geometry),
 ``route`` (closed paths), ``lighting``, ``render`` (ray casting), ``drive`` (visits),
 ``preview`` and ``writer``.
 """

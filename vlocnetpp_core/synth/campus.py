@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from vlocnetpp_core.synth import object_strips
 from vlocnetpp_core.synth import textures as tx
 from vlocnetpp_core.synth.campus_buildings import Buildings
 from vlocnetpp_core.synth.campus_furniture import StreetFurniture
@@ -199,9 +200,9 @@ class Campus(Buildings, StreetFurniture, GroundColour):
         self._foliage = []
         for gcol in greens:
             for a, b in ((2.2, 2.6), (3.0, 3.4)):
-                self._foliage.append((a, b, self._atlas.add(tx.foliage_strip(rng, a, 2 * b, gcol))))
-        self._bark = self._atlas.add(tx.bark_strip(rng, 0.25, 9.0))
-        hedge_strip = self._atlas.add(tx.foliage_strip(rng, 6.0, 1.3, 0x3B5E27))
+                self._foliage.append((a, b, self._atlas.add(object_strips.foliage_strip(rng, a, 2 * b, gcol))))
+        self._bark = self._atlas.add(object_strips.bark_strip(rng, 0.25, 9.0))
+        hedge_strip = self._atlas.add(object_strips.foliage_strip(rng, 6.0, 1.3, 0x3B5E27))
         hedge_cap = self._cap(0x46692E)
 
         def tree(x, y, big: bool, shade: int | None = None) -> bool:
@@ -282,12 +283,14 @@ class Campus(Buildings, StreetFurniture, GroundColour):
     # ================================================================= moving things
     def _make_dynamic_appearances(self, rng: np.random.Generator) -> None:
         L, W, H = CAR_SIZE
-        self.car_strips = [self._atlas.add(tx.car_strip(rng, L, W, H, p)) for p in CAR_PAINTS]
+        self.car_strips = [self._atlas.add(object_strips.car_strip(rng, L, W, H, p)) for p in CAR_PAINTS]
         self.car_caps = [self._cap(p) for p in CAR_PAINTS]
         pl, pw, ph = PERSON_SIZE
         self.person_strips = [
             self._atlas.add(
-                tx.person_strip(rng, pl, pw, ph, s, int(rng.choice([0x1B2631, 0x34495E, 0x5D4037, 0x283747])))
+                object_strips.person_strip(
+                    rng, pl, pw, ph, s, int(rng.choice([0x1B2631, 0x34495E, 0x5D4037, 0x283747]))
+                )
             )
             for s in SHIRTS
         ]

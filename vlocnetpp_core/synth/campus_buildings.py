@@ -7,23 +7,23 @@ import math
 
 import numpy as np
 
-from vlocnetpp_core.synth import textures as tx
+from vlocnetpp_core.synth import facades, object_strips
 from vlocnetpp_core.synth.layout import BUILDING, DEPTH_M, OTHER, POLE, WIDTH_M
 
 STYLES = {
-    "dorm": tx.FacadeStyle(
+    "dorm": facades.FacadeStyle(
         wall=0xC9B99A, window=0x2E3A44, frame=0xF2EFE6, floor_height=3.0, window_width=1.2, window_height=1.4, pitch=2.7
     ),
-    "brick": tx.FacadeStyle(
+    "brick": facades.FacadeStyle(
         wall=0x94472F, frame=0xE8E4DA, floor_height=3.6, window_width=1.5, window_height=1.9, pitch=3.3, band=0xB8A58C
     ),
-    "concrete": tx.FacadeStyle(
+    "concrete": facades.FacadeStyle(
         wall=0xA6A6A0, frame=0x5A5F63, floor_height=3.5, window_height=1.3, pitch=3.6, ribbon=True, window_refl=0.5
     ),
-    "white": tx.FacadeStyle(
+    "white": facades.FacadeStyle(
         wall=0xE4E2DA, frame=0x8A8F94, floor_height=3.3, window_height=1.5, pitch=3.0, ribbon=True, band=0x8A8F94
     ),
-    "dark": tx.FacadeStyle(
+    "dark": facades.FacadeStyle(
         wall=0x4B4F54,
         frame=0xC9CCCF,
         floor_height=3.4,
@@ -32,13 +32,15 @@ STYLES = {
         ground_floor="shop",
         window_refl=0.45,
     ),
-    "yellow": tx.FacadeStyle(
+    "yellow": facades.FacadeStyle(
         wall=0xD6B14E, frame=0xFFFFFF, floor_height=3.2, window_width=1.3, window_height=1.6, pitch=2.9
     ),
-    "terracotta": tx.FacadeStyle(
+    "terracotta": facades.FacadeStyle(
         wall=0xB9603A, frame=0xF0E6D8, floor_height=3.2, window_width=1.0, window_height=1.8, pitch=2.2, band=0xE8D8C0
     ),
-    "glass": tx.FacadeStyle(wall=0x6F7B80, window=0x35505E, frame=0xA8B0B4, floor_height=3.8, pitch=2.4, curtain=True),
+    "glass": facades.FacadeStyle(
+        wall=0x6F7B80, window=0x35505E, frame=0xA8B0B4, floor_height=3.8, pitch=2.4, curtain=True
+    ),
 }
 
 
@@ -49,7 +51,7 @@ class Buildings:
 
     # ================================================================= buildings
     def _building(self, rng, x, y, yaw, length, width, height, style: str, mural: int | None = None) -> None:
-        strip = self._atlas.add(tx.building_strip(rng, length, width, height, STYLES[style], mural))
+        strip = self._atlas.add(facades.building_strip(rng, length, width, height, STYLES[style], mural))
         self._b.box(x, y, yaw, length, width, 0.0, height, BUILDING, strip, self._cap(STYLES[style].wall))
         c, s = math.cos(yaw), math.sin(yaw)
         ex, ey = np.array([c, s]) * length / 2, np.array([-s, c]) * width / 2
@@ -140,19 +142,21 @@ class Buildings:
         """One-of-a-kind objects that make places recognisable (placed before trees and furniture)."""
         X0, X1, Y1, Ym = self.X0, self.X1, self.Y1, self.Ym
         b = self._b
-        thin_strip = self._atlas.add(tx.metal_strip(rng, 0.08, 3.0, 0x8C9196))
+        thin_strip = self._atlas.add(object_strips.metal_strip(rng, 0.08, 3.0, 0x8C9196))
         grey = self._cap(0x4A4F55)
         # plaza: fountain and kiosk
         px0, py0, px1, py1 = self.plaza
         cx, cy = (px0 + px1) / 2, (py0 + py1) / 2
-        stone = self._atlas.add(tx.metal_strip(rng, 2.4, 0.6, 0xB5AFA3))
+        stone = self._atlas.add(object_strips.metal_strip(rng, 2.4, 0.6, 0xB5AFA3))
         if self._free(cx, cy, 2.4):
             b.cylinder(cx, cy, 2.4, 0.0, 0.55, OTHER, stone, self._cap(0x4F86A6))
             self._occupy(cx, cy, 0.0, 5.0, 5.0)
             self.landmarks.append(("fountain", cx, cy))
         kx, ky = px0 + 2.5, py1 - 3.0
         if self._free(kx, ky, 1.8):
-            kiosk = self._atlas.add(tx.panel_strip(rng, 3.0, 2.2, 2.6, [0xE74C3C, 0xF9E79F, 0xE74C3C, 0xFFFFFF]))
+            kiosk = self._atlas.add(
+                object_strips.panel_strip(rng, 3.0, 2.2, 2.6, [0xE74C3C, 0xF9E79F, 0xE74C3C, 0xFFFFFF])
+            )
             b.box(kx, ky, 0.0, 3.0, 2.2, 0.0, 2.6, OTHER, kiosk, self._cap(0x922B21))
             self._occupy(kx, ky, 0.0, 3.2, 2.4)
             self.landmarks.append(("kiosk", kx, ky))
@@ -160,8 +164,8 @@ class Buildings:
         for _ in range(40):
             sx, sy = float(rng.uniform(X0 + 10, X1 - 10)), float(rng.uniform(Ym + 9, Y1 - 9))
             if self._free(sx, sy, 2.0):
-                red = self._atlas.add(tx.panel_strip(rng, 0.9, 0.9, 5.0, [0xC0392B, 0xE74C3C]))
-                yel = self._atlas.add(tx.metal_strip(rng, 0.6, 3.4, 0xF4D03F))
+                red = self._atlas.add(object_strips.panel_strip(rng, 0.9, 0.9, 5.0, [0xC0392B, 0xE74C3C]))
+                yel = self._atlas.add(object_strips.metal_strip(rng, 0.6, 3.4, 0xF4D03F))
                 b.box(sx, sy, math.radians(30), 0.9, 0.9, 0.0, 5.0, OTHER, red, self._cap(0xC0392B))
                 b.cylinder(sx + 1.4, sy + 0.4, 0.6, 0.0, 3.4, OTHER, yel, self._cap(0xF4D03F))
                 self._occupy(sx, sy, 0.0, 4.0, 3.0)
@@ -174,7 +178,7 @@ class Buildings:
                 int(c)
                 for c in rng.choice([0x1ABC9C, 0xE67E22, 0x9B59B6, 0x2C3E50, 0xF1C40F, 0xE74C3C], 4, replace=False)
             ]
-            board = self._atlas.add(tx.panel_strip(rng, 5.0, 0.15, 2.5, colors))
+            board = self._atlas.add(object_strips.panel_strip(rng, 5.0, 0.15, 2.5, colors))
             b.box(bx_, by_, 0.0, 5.0, 0.15, 2.4, 4.9, OTHER, board, self._cap(0x2C3E50))
             for sgn in (1, -1):
                 b.cylinder(bx_ + sgn * 2.0, by_, 0.07, 0.0, 2.45, POLE, thin_strip, grey)
@@ -182,9 +186,9 @@ class Buildings:
             self.landmarks.append(("billboard", bx_, by_))
         sx, sy = self.Xs + 12.0, self.Y0 - 6.9
         if self._free(sx, sy, 0.9, margin=0.1) and self._free_along(np.array([sx, sy]), np.array([1.0, 0.0]), 3.9):
-            glass = self._atlas.add(tx.glass_strip(3.6, 0.05, 2.2))
-            side = self._atlas.add(tx.glass_strip(1.4, 0.05, 2.2))
-            roof = self._atlas.add(tx.panel_strip(rng, 3.9, 1.7, 0.12, [0xBFC5C9]))
+            glass = self._atlas.add(object_strips.glass_strip(3.6, 0.05, 2.2))
+            side = self._atlas.add(object_strips.glass_strip(1.4, 0.05, 2.2))
+            roof = self._atlas.add(object_strips.panel_strip(rng, 3.9, 1.7, 0.12, [0xBFC5C9]))
             b.box(sx, sy - 0.6, 0.0, 3.6, 0.05, 0.1, 2.3, OTHER, glass, self._cap(0x9AA3A8))
             for sgn in (1, -1):
                 b.box(sx + sgn * 1.8, sy + 0.05, math.pi / 2, 1.3, 0.05, 0.1, 2.3, OTHER, side, self._cap(0x9AA3A8))

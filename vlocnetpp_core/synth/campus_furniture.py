@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 
+from vlocnetpp_core.synth import object_strips
 from vlocnetpp_core.synth import textures as tx
 from vlocnetpp_core.synth.layout import DEPTH_M, OTHER, POLE, WIDTH_M
 
@@ -20,11 +21,11 @@ class StreetFurniture:
         calls (and of their texture draws from ``rng``) defines the scene: keep it."""
         X0, X1, Y0, Y1, Ym = self.X0, self.X1, self.Y0, self.Y1, self.Ym
         strips = {
-            "pole": self._atlas.add(tx.metal_strip(rng, 0.09, 6.0, 0x4A4F55)),
-            "thin": self._atlas.add(tx.metal_strip(rng, 0.08, 3.0, 0x8C9196, bands=False)),
-            "bollard": self._atlas.add(tx.metal_strip(rng, 0.1, 1.0, 0x3C3F44, bands=True)),
+            "pole": self._atlas.add(object_strips.metal_strip(rng, 0.09, 6.0, 0x4A4F55)),
+            "thin": self._atlas.add(object_strips.metal_strip(rng, 0.08, 3.0, 0x8C9196, bands=False)),
+            "bollard": self._atlas.add(object_strips.metal_strip(rng, 0.1, 1.0, 0x3C3F44, bands=True)),
             "grey": self._cap(0x4A4F55),
-            "head": self._atlas.add(tx.panel_strip(rng, 0.8, 0.3, 0.2, [0x3A3F45])),
+            "head": self._atlas.add(object_strips.panel_strip(rng, 0.8, 0.3, 0.2, [0x3A3F45])),
         }
         sides = [
             ((X0, Y0), (X1, Y0)),
@@ -77,7 +78,7 @@ class StreetFurniture:
             [0xF1C40F, 0x1C1C1C],
             [0xFFFFFF, 0x1F5FAF, 0xFFFFFF],
         ]
-        sign_strips = [self._atlas.add(tx.panel_strip(rng, 0.75, 0.06, 0.75, c)) for c in sign_colors]
+        sign_strips = [self._atlas.add(object_strips.panel_strip(rng, 0.75, 0.06, 0.75, c)) for c in sign_colors]
         spots = [
             (X0, Ym, 1, 1),
             (X1, Ym, -1, -1),
@@ -109,9 +110,9 @@ class StreetFurniture:
     def _place_benches(self, rng: np.random.Generator, sides: list) -> None:
         """Benches (seat + back), some with a bin beside them, along the sidewalks."""
         b = self._b
-        bench = self._atlas.add(tx.panel_strip(rng, 1.8, 0.6, 0.5, [0x8B5A2B, 0x6E4420]))
-        back = self._atlas.add(tx.panel_strip(rng, 1.8, 0.08, 0.45, [0x8B5A2B, 0x6E4420, 0x8B5A2B]))
-        bin_strip = self._atlas.add(tx.metal_strip(rng, 0.28, 1.0, 0x2F5D50, bands=True))
+        bench = self._atlas.add(object_strips.panel_strip(rng, 1.8, 0.6, 0.5, [0x8B5A2B, 0x6E4420]))
+        back = self._atlas.add(object_strips.panel_strip(rng, 1.8, 0.08, 0.45, [0x8B5A2B, 0x6E4420, 0x8B5A2B]))
+        bin_strip = self._atlas.add(object_strips.metal_strip(rng, 0.28, 1.0, 0x2F5D50, bands=True))
         for (ax, ay), (bx, by) in sides:
             d = np.array([bx - ax, by - ay])
             n_len = float(np.linalg.norm(d))
@@ -139,7 +140,7 @@ class StreetFurniture:
             L = math.hypot(x1 - x0, y1 - y0)
             if L < 1.0:
                 return
-            strip = self._atlas.add(tx.fence_strip(rng, L, 0.06, h, color, spacing, mesh))
+            strip = self._atlas.add(object_strips.fence_strip(rng, L, 0.06, h, color, spacing, mesh))
             self._b.box(
                 (x0 + x1) / 2,
                 (y0 + y1) / 2,

@@ -44,7 +44,8 @@ from torch.nn import functional as F
 from vlocnetpp_core.classes import IGNORE_INDEX
 from vlocnetpp_core.geometry import relative_pose
 from vlocnetpp_core.model.stages import STAGE_TASKS
-from vlocnetpp_core.model.vlocnet import TASKS, StepOutput
+from vlocnetpp_core.model.step_types import StepOutput
+from vlocnetpp_core.model.vlocnet import TASKS
 from vlocnetpp_core.training.config import S_Q_INIT
 
 S_X_INIT = 0.0

@@ -9,7 +9,7 @@ import numpy as np
 import torch
 
 from vlocnetpp_core.model.stages import stage_spec, stage_tasks
-from vlocnetpp_core.model.vlocnet import StepOutput
+from vlocnetpp_core.model.step_types import StepOutput
 
 
 def float32_outputs(out: StepOutput) -> StepOutput:
