@@ -157,10 +157,11 @@ def diagnostic_values(msg: DiagnosticArray) -> dict[str, str]:
 
 
 def params_file(install: Path, folder: Path, **overrides) -> Path:
-    """The installed config/localizer.yaml with some values replaced, written into ``folder``."""
+    """The installed config/localizer.yaml with some values replaced, written into ``folder``; ``backend`` torch unless
+    given (the tests compare the node's outputs with an in-process torch Localizer's)."""
     shipped = install / "vlocnetpp_ros" / "share" / "vlocnetpp_ros" / "config" / "localizer.yaml"
     data = yaml.safe_load(shipped.read_text())
-    data["/**"]["ros__parameters"].update(overrides)
+    data["/**"]["ros__parameters"].update({"backend": "torch", **overrides})
     path = folder / f"params_{len(list(folder.glob('params_*')))}.yaml"
     path.write_text(yaml.safe_dump(data))
     return path

@@ -86,15 +86,15 @@ def test_a_prior_far_from_the_map_or_a_blank_frame_keeps_the_network_pose_and_sa
     far_t, far_q = f.t + np.array([500.0, 0.0, 0.0]), f.q  # no keyframe within the search radius
     blank = np.full_like(f.image, 128)
     for image, prior, status in ((f.image, (far_t, far_q), "no_keyframes"), (blank, (f.t, f.q), "no_features")):
-        stream.start(image, f.intrinsics)
-        out = stream.finish(*prior, np.zeros(3), np.array([1.0, 0, 0, 0]), continued=False)
+        job = stream.start(image, f.intrinsics)
+        out = stream.finish(job, *prior, np.zeros(3), np.array([1.0, 0, 0, 0]), continued=False)
         assert (out.source, out.status, out.inliers) == ("network", status, 0)
         np.testing.assert_array_equal(out.t, prior[0])
         np.testing.assert_array_equal(out.q, prior[1])
     # a prior 20 m off, whose keyframes still hold the view: the solution is right but disagrees with the prior
-    stream.start(f.image, f.intrinsics)
+    job = stream.start(f.image, f.intrinsics)
     wrong = _shifted(f.t, f.q, 20.0, 0.0)
-    out = stream.finish(*wrong, np.zeros(3), np.array([1.0, 0, 0, 0]), continued=False)
+    out = stream.finish(job, *wrong, np.zeros(3), np.array([1.0, 0, 0, 0]), continued=False)
     assert out.source == "network" and out.status in ("disagrees", "no_keyframes", "too_few_matches"), out
     np.testing.assert_array_equal(out.t, wrong[0])
 
@@ -118,6 +118,39 @@ def test_the_localizer_refines_the_shipped_networks_pose_and_falls_back_on_a_bla
     res = loc.step(np.full_like(frames[0].image, 90), "rgb8", stamp=0.1 * len(frames), intrinsics=frames[0].intrinsics)
     assert (res.source, res.refine_status, res.inliers) == ("network", "no_features", 0)
     np.testing.assert_array_equal(res.t, res.network_t)
+
+
+def test_begin_and_finish_in_two_threads_give_the_poses_of_step(campus, campus_map):
+    """The node's two stages: the next frame's network runs while the last one is refined, with the same results."""
+    import queue
+    import threading
+
+    from vlocnetpp_core.inference.checkpoint import shipped_checkpoint
+    from vlocnetpp_core.inference.localizer import Localizer
+
+    index = open_dataset(campus, None, "train")
+    frames = [index.load(i) for i in range(10)]
+    sequential, pipelined = (
+        Localizer.from_checkpoint(shipped_checkpoint(), num_threads=1, map_path=campus_map) for _ in range(2)
+    )
+    expected = [sequential.step(f.image, "rgb8", 0.1 * k, intrinsics=f.intrinsics) for k, f in enumerate(frames)]
+    begun, results = queue.Queue(maxsize=1), []
+
+    def finish() -> None:
+        while (step := begun.get()) is not None:
+            results.append(pipelined.finish(step))
+
+    worker = threading.Thread(target=finish)
+    worker.start()
+    for k, f in enumerate(frames):
+        begun.put(pipelined.begin(f.image, "rgb8", 0.1 * k, intrinsics=f.intrinsics))
+    begun.put(None)
+    worker.join()
+    assert [r.source for r in results] == [r.source for r in expected] and expected[-1].source == "refined"
+    for got, want in zip(results, expected, strict=True):
+        np.testing.assert_array_equal(got.t, want.t)
+        np.testing.assert_array_equal(got.q, want.q)
+        np.testing.assert_array_equal(got.pose_covariance, want.pose_covariance)
 
 
 def test_pnp_covariance_matches_the_spread_of_the_solutions():

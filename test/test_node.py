@@ -317,8 +317,10 @@ def test_start_up_errors_are_user_errors(checkpoint: Path, tmp_path: Path, monke
 def test_the_params_file_sets_every_declared_parameter_to_its_default():
     data = yaml.safe_load((REPO / "config" / "localizer.yaml").read_text())
     params = data["/**"]["ros__parameters"]
-    # but map: the launch YAML refines against the map beside the checkpoint, a node started without it does not
-    assert PARAMS_FILE_VALUES == {"map": "auto"} and PARAMETERS["map"][0] == ""
+    # but map and backend: the launch YAML refines against the map beside the checkpoint, with ONNX Runtime; a node
+    # started without it does not refine, and runs torch
+    assert PARAMS_FILE_VALUES == {"map": "auto", "backend": "onnx"} and PARAMETERS["map"][0] == ""
+    assert PARAMETERS["backend"][0] == "torch"
     assert params == {**{name: default for name, (default, _) in PARAMETERS.items()}, **PARAMS_FILE_VALUES}
 
 

@@ -5,7 +5,8 @@ and the benchmarks, and the ONNX Runtime session.
 the ROS executor (the node) or to data loading and the OS; on a loaded CPU, OpenMP threads that wait on
 a descheduled sibling make every step several times slower (docs/performance.md). Torch's thread
 count is process-wide, so it is set once, by the program's entry point (:func:`use_threads`), never
-inside a library constructor.
+inside a library constructor. The same call puts OpenBLAS (numpy's and OpenCV's) on one thread
+(:func:`single_threaded_blas`).
 """
 
 from __future__ import annotations
@@ -26,4 +27,17 @@ def use_threads(requested: int) -> int:
 
     n = resolve_threads(requested)
     torch.set_num_threads(n)
+    single_threaded_blas()
     return n
+
+
+def single_threaded_blas() -> None:
+    """Put the OpenBLAS libraries loaded in this process (numpy's, OpenCV's; torch uses MKL) on one thread.
+
+    Their products here are small (PnP, keyframe search, retrieval), and OpenBLAS's worker threads spin-wait after
+    each call: beside the network's thread they took a core from it. A refining ``Localizer.step`` of the shipped
+    model on 2 cores used 163 ms of CPU in 82 ms with two OpenBLAS threads, 79 ms in 52 ms with one
+    (docs/performance.md, ``node_refined_hz``)."""
+    from threadpoolctl import ThreadpoolController
+
+    ThreadpoolController().select(internal_api="openblas").limit(limits=1)

@@ -61,8 +61,9 @@ PARAMETERS: dict[str, tuple[object, str]] = {
     ),
 }
 # What config/localizer.yaml sets apart from the defaults above: the package's launch YAML refines against the
-# shipped map beside the shipped model (a node started without it does not refine).
-PARAMS_FILE_VALUES: dict[str, object] = {"map": MAP_AUTO}
+# shipped map beside the shipped model (a node started without it does not refine), with ONNX Runtime (faster on a
+# CPU: the rate with refinement, docs/performance.md; a node started without it runs torch, which needs no export).
+PARAMS_FILE_VALUES: dict[str, object] = {"map": MAP_AUTO, "backend": "onnx"}
 
 
 def default_checkpoint() -> Path:

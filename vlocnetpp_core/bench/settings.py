@@ -24,7 +24,7 @@ class BenchSettings:
     node: bool = True
     refinement: bool = True  # the refinement figures (shipped model and map, :mod:`.refinement`)
     refinement_map: str = "auto"  # their keyframe map: a file, or auto (NAME.map.npz beside the shipped model)
-    node_backend: str = "torch"
+    node_backend: str = "onnx"  # the launch YAML's (config/localizer.yaml)
     node_transport: str = "large_data"  # or "environment" (see the latency-bench program, docs/performance.md)
     node_repetitions: int = 30
     node_warmup: int = 3

@@ -90,6 +90,20 @@ class LocalizerResult:
     inliers: int = 0  # PnP inliers of the refinement tried (0 without)
 
 
+@dataclass
+class StepInProgress:
+    """A frame between :meth:`Localizer.begin` and :meth:`Localizer.finish`: its result with the network's pose,
+    the class ids ``(h, w) uint8`` at network resolution (None: no semantic stream), the image's ``shape (H, W)``,
+    the refinement's feature job (:meth:`~vlocnetpp_core.mapping.stream.RefinedStream.start`) and when it began
+    (``time.perf_counter``)."""
+
+    result: LocalizerResult
+    ids: np.ndarray | None
+    shape: tuple[int, int]
+    features: object
+    started: float
+
+
 class Localizer:
     """Streaming inference with temporal state. Build with :meth:`from_checkpoint`."""
 
@@ -188,8 +202,6 @@ class Localizer:
         self._prev_stamp: float | None = None
         self._prev_shape: tuple[int, int] | None = None
         self._prev_intrinsics: Intrinsics | None = None
-        if self.refinement is not None:
-            self.refinement.reset()
         if clear_odometry:
             self._odom_t, self._odom_q = _IDENTITY_T.copy(), _IDENTITY_Q.copy()
             self._odom_steps = 0
@@ -202,7 +214,7 @@ class Localizer:
         depth: np.ndarray | None = None,
         intrinsics: Intrinsics | None = None,
     ) -> LocalizerResult:
-        """Process one frame.
+        """Process one frame: :meth:`finish` of :meth:`begin`.
 
         Args:
             image: ``(H, W, C)`` / ``(H, W)`` uint8 array in ``encoding`` (rgb8, bgr8, rgba8, bgra8, mono8).
@@ -215,6 +227,20 @@ class Localizer:
             FrameError: the frame is unusable (``reason``: see ``preprocess.REASONS``, or
                 ``nan_output`` after non-finite network outputs, which also resets the state).
         """
+        return self.finish(self.begin(image, encoding, stamp, depth, intrinsics))
+
+    def begin(
+        self,
+        image: np.ndarray,
+        encoding: str,
+        stamp: float,
+        depth: np.ndarray | None = None,
+        intrinsics: Intrinsics | None = None,
+    ) -> StepInProgress:
+        """The network's part of :meth:`step` (same arguments and errors): the frame's features start on the
+        refinement's worker, the network runs, the temporal state and the odometry move on. Pass the result to
+        :meth:`finish`, in the order of the ``begin`` calls; the next ``begin`` may run while a ``finish`` runs on
+        another thread (a pipeline of two stages: the node's)."""
         start = time.perf_counter()
         rgb = to_rgb(image, encoding)
         net_intrinsics = self.default_intrinsics if intrinsics is None else intrinsics.resized(*self.input_size)
@@ -224,8 +250,9 @@ class Localizer:
         reason = self._reset_reason(stamp, shape, net_intrinsics)
         if reason is not None:
             self._state = None
+        features = None
         if self.refinement is not None:
-            self.refinement.start(
+            features = self.refinement.start(
                 rgb, self.default_intrinsics.resized(shape[1], shape[0]) if intrinsics is None else intrinsics
             )
         with torch.inference_mode():
@@ -239,7 +266,7 @@ class Localizer:
                 xyz, quat, rel_xyz, rel_quat = (v[0].double().cpu().numpy() for v in outputs[:4])
         if not finite:
             if self.refinement is not None:
-                self.refinement.cancel()
+                self.refinement.cancel(features)
             self.reset("nan_output")
             raise FrameError(
                 "nan_output", "the network produced NaN or infinite outputs; frame rejected and temporal state reset"
@@ -248,7 +275,45 @@ class Localizer:
         self._state = state
         self._pending_reset = None
         self._prev_stamp, self._prev_shape, self._prev_intrinsics = stamp, shape, net_intrinsics
+        return StepInProgress(
+            self._network_result(stamp, xyz, quat, rel_xyz, rel_quat, dt, reason), ids, shape, features, start
+        )
 
+    def finish(self, step: StepInProgress) -> LocalizerResult:
+        """The rest of :meth:`step` for a :meth:`begin`'s result: the class ids at the image's resolution and, with a
+        map, the refinement (the published pose and its covariance)."""
+        result, ids, shape = step.result, step.ids, step.shape
+        if ids is not None and ids.shape != shape:
+            ids = cv2.resize(ids, (shape[1], shape[0]), interpolation=cv2.INTER_NEAREST_EXACT)
+        result.mask = ids
+        if self.refinement is not None:
+            p = self.refinement.finish(
+                step.features, result.t, result.q, result.rel_t, result.rel_q, result.reset_reason is None, ids
+            )
+            result.t, result.q, result.source, result.refine_status, result.inliers = (
+                p.t,
+                p.q,
+                p.source,
+                p.status,
+                p.inliers,
+            )
+            if p.covariance is not None:
+                result.pose_covariance = p.covariance + np.diag(np.full(6, MIN_VARIANCE))
+        result.seconds = time.perf_counter() - step.started
+        return result
+
+    def _network_result(
+        self,
+        stamp: float,
+        xyz: np.ndarray,
+        quat: np.ndarray,
+        rel_xyz: np.ndarray,
+        rel_quat: np.ndarray,
+        dt: float,
+        reason: str | None,
+    ) -> LocalizerResult:
+        """The frame's result from the network's outputs, the odometry moved on by its relative pose (mask, refinement
+        and time are :meth:`finish`'s)."""
         q = geometry.quat_normalize(quat)
         if reason is None:
             rel_t, rel_q = rel_xyz, geometry.quat_normalize(rel_quat)
@@ -261,19 +326,10 @@ class Localizer:
             rel_t, rel_q = _IDENTITY_T.copy(), _IDENTITY_Q.copy()
             linear, angular = np.zeros(3), np.zeros(3)
             twist_var = np.full(6, UNKNOWN_VARIANCE)
-        mask = ids
-        if ids is not None and ids.shape != shape:
-            mask = cv2.resize(ids, (shape[1], shape[0]), interpolation=cv2.INTER_NEAREST_EXACT)
-        pose_t, pose_q, pose_cov, refined = xyz, q, np.diag(self.pose_variance), {}
-        if self.refinement is not None:
-            p = self.refinement.finish(xyz, q, rel_t, rel_q, continued=reason is None, mask=mask)
-            pose_t, pose_q, refined = p.t, p.q, {"source": p.source, "refine_status": p.status, "inliers": p.inliers}
-            if p.covariance is not None:
-                pose_cov = p.covariance + np.diag(np.full(6, MIN_VARIANCE))
         return LocalizerResult(
             stamp=stamp,
-            t=pose_t,
-            q=pose_q,
+            t=xyz,
+            q=q,
             rel_t=rel_t,
             rel_q=rel_q,
             odom_t=self._odom_t.copy(),
@@ -281,15 +337,14 @@ class Localizer:
             linear=linear,
             angular=angular,
             dt=dt,
-            pose_covariance=pose_cov,
+            pose_covariance=np.diag(self.pose_variance),
             odom_covariance=np.diag(self.odometry_variance * (1 + self._odom_steps)),
             twist_covariance=np.diag(twist_var),
-            mask=mask,
+            mask=None,
             reset_reason=reason,
-            seconds=time.perf_counter() - start,
+            seconds=0.0,
             network_t=xyz,
             network_q=q,
-            **refined,
         )
 
     def _reset_reason(self, stamp: float, shape: tuple[int, int], intrinsics: Intrinsics) -> str | None:

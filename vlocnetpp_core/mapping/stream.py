@@ -2,8 +2,10 @@
 the network.
 
 Per frame, :meth:`RefinedStream.start` (before the network runs) begins the frame's feature extraction on a
-worker thread, so that SIFT and the network share the cores; :meth:`RefinedStream.finish` (with the network's
-pose and relative pose) matches and solves (:meth:`.refiner.Refiner.refine`) and returns the pose to publish:
+worker thread, so that SIFT and the network share the cores, and returns the job; :meth:`RefinedStream.finish`
+(with the job, the network's pose and relative pose) matches and solves (:meth:`.refiner.Refiner.refine`) and returns
+the pose to publish. ``finish`` calls come in the order of the ``start`` calls; the next ``start`` may run while a
+``finish`` runs on another thread (it then decides from the state before that ``finish``):
 
 * ``refined``: the PnP pose, with its calibrated covariance (keypoints on the moving objects of the network's own
   segmentation left out);
@@ -45,6 +47,16 @@ class StreamPose:
     inliers: int
 
 
+@dataclass
+class FeatureJob:
+    """A frame's features on the worker: ``future`` of its :class:`~.features.Features`, ``K (3, 3)`` and the width
+    of the grey image they come from."""
+
+    future: Future
+    K: np.ndarray
+    width: int
+
+
 class RefinedStream:
     """Refinement state of one stream (see the module docstring); ``refine_every`` k refines every k-th frame."""
 
@@ -55,7 +67,6 @@ class RefinedStream:
         self.refine_every = int(refine_every)
         self.odometry_variance = np.zeros(6) if odometry_variance is None else np.asarray(odometry_variance, np.float64)
         self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="vlocnetpp-features")
-        self._pending: tuple[Future, np.ndarray, int] | None = None  # features, K, width of the grey image
         self.reset()
 
     def reset(self) -> None:
@@ -63,23 +74,23 @@ class RefinedStream:
         self._anchor: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # t, q, covariance
         self._steps = 0  # frames since the anchor was refined
 
-    def start(self, image: np.ndarray, intrinsics) -> None:
+    def start(self, image: np.ndarray, intrinsics) -> FeatureJob | None:
         """Begin the frame ``image`` (``(H, W, 3)`` RGB) with its
-        :class:`~vlocnetpp_core.camera.intrinsics.Intrinsics`."""
-        self.cancel()
+        :class:`~vlocnetpp_core.camera.intrinsics.Intrinsics`: its feature job, or None on a frame to propagate."""
         if self._anchor is not None and (self._steps + 1) % self.refine_every != 0:
-            return  # propagated frame
+            return None
         grey, K = self.refiner.prepare(image, intrinsics)
-        self._pending = (self._worker.submit(self.refiner.extract, grey), K, grey.shape[1])
+        return FeatureJob(self._worker.submit(self.refiner.extract, grey), K, grey.shape[1])
 
-    def cancel(self) -> None:
-        """Drop the started frame (e.g. the network rejected it)."""
-        if self._pending is not None:
-            self._pending[0].result()
-            self._pending = None
+    @staticmethod
+    def cancel(job: FeatureJob | None) -> None:
+        """Drop a started frame (e.g. the network rejected it)."""
+        if job is not None:
+            job.future.result()
 
     def finish(
         self,
+        job: FeatureJob | None,
         net_t: np.ndarray,
         net_q: np.ndarray,
         rel_t: np.ndarray,
@@ -87,9 +98,9 @@ class RefinedStream:
         continued: bool,
         mask: np.ndarray | None = None,
     ) -> StreamPose:
-        """The pose of the started frame given the network's pose and relative pose; ``continued`` False on a first
-        frame (the relative pose means nothing); ``mask (H, W)``: the network's class ids at the image's resolution,
-        whose moving objects are left out of the matching (None: a pose-only model)."""
+        """The pose of the frame of ``job`` (:meth:`start`'s) given the network's pose and relative pose;
+        ``continued`` False on a first frame (the relative pose means nothing); ``mask (H, W)``: the network's class
+        ids at the image's resolution, whose moving objects are left out of the matching (None: a pose-only model)."""
         if not continued:
             self.reset()
         prediction = None
@@ -98,17 +109,16 @@ class RefinedStream:
             t, q = geometry.pose_compose(self._anchor[0], self._anchor[1], rel_t, rel_q)
             covariance = self._anchor[2] + np.diag(self.odometry_variance)
             prediction = (t, geometry.quat_normalize(q), covariance)
-        pending, self._pending = self._pending, None
-        if pending is None:  # between refinements
+        if job is None:  # between refinements
             self._anchor = prediction
+            if prediction is None:  # started before a reset (a pipeline's next frame): nothing to propagate
+                return StreamPose(net_t, net_q, None, "network", None, 0)
             return StreamPose(prediction[0], prediction[1], prediction[2], "propagated", None, 0)
-        features = pending[0].result()
+        features = job.future.result()
         if mask is not None:
-            scale = mask.shape[1] / pending[2]
+            scale = mask.shape[1] / job.width
             features = features.select(off_dynamic(features.uv * scale, mask))
-        result = self.refiner.refine(
-            features, pending[1], (net_t, net_q), None if prediction is None else prediction[:2]
-        )
+        result = self.refiner.refine(features, job.K, (net_t, net_q), None if prediction is None else prediction[:2])
         if result.accepted:
             s = result.solution
             self._anchor, self._steps = (s.t, s.q, s.covariance), 0
