@@ -64,14 +64,14 @@ KINDS = (
     ("best_effort", 10),
     ("best_effort", 50),
 )
-# Growth allowed from the end of a phase's first storm to the end of its last (the same messages again), of the
-# node's heap in use (``heap_in_use_mb`` in its diagnostics: glibc's mallinfo2, vlocnetpp_ros/heap.py) and of its
-# resident memory. A reading holds whatever the raw node's depth matcher holds then: up to 8 depth images of 1.2 MiB
-# (vlocnetpp_ros.node.DEPTH_MATCH_FRAMES), fewer where a storm's last depth messages were refused, so the heap in use
-# may differ by up to 9.4 MiB from one storm to the next with nothing leaking (measured with the node's DYNAMIC
-# history memory policy, vlocnetpp_ros/dds_profile.py: -9.4 to +3.4 MiB over three runs). The resident memory moves
-# more (-9 to +12 MiB, fragmentation; seen on the 2-core CI machine), so it only guards against gross growth. With
-# rmw_fastrtps's PREALLOCATED_WITH_REALLOC instead (RMW_FASTRTPS_USE_QOS_FROM_XML=0: Fast DDS keeps every payload
+# Growth allowed from the end of a phase's first storm to the end of its last (the same messages again), of the node's
+# heap in use (``heap_in_use_mb`` in its diagnostics: glibc's mallinfo2, vlocnetpp_ros/heap.py) and of its resident
+# memory. A reading holds whatever the raw node's depth matcher holds then: up to 8 depth images of 1.2 MiB
+# (vlocnetpp_ros.depth_matcher.DEPTH_MATCH_FRAMES), fewer where a storm's last depth messages were refused, so the
+# heap in use may differ by up to 9.4 MiB from one storm to the next with nothing leaking (measured with the node's
+# DYNAMIC history memory policy, vlocnetpp_ros/dds_profile.py: -9.4 to +3.4 MiB over three runs). The resident memory
+# moves more (-9 to +12 MiB, fragmentation; seen on the 2-core CI machine), so it only guards against gross growth.
+# With rmw_fastrtps's PREALLOCATED_WITH_REALLOC instead (RMW_FASTRTPS_USE_QOS_FROM_XML=0: Fast DDS keeps every payload
 # grown to a fragmented message's size for reuse; issues 22 and 49) a reliable depth-50 publisher grew the raw node's
 # heap in use by 12-15 MiB a storm: that phase sends STORMS_DEEP storms.
 HEAP_GROWTH_MB = 9.4 + 3.0

@@ -15,9 +15,13 @@ Transport (``--transport``): ``large_data`` (default) runs both sides with the s
 profile ``config/fastdds_large_data.xml`` (shared memory for large messages; what docs/node.md
 recommends for camera images), ``environment`` leaves the DDS settings of the environment as they are.
 
+With ``--stream-hz R`` the node is then fed as a camera feeds it, without waiting for answers: frames at R per
+second for ``--stream-s`` seconds; ``stream_answered_hz`` is the number of poses it published for them per second
+(first frame sent to last pose received): the most frames a second the node gets through when R is above that.
+
 Prints one JSON object: ``latency_s`` and ``step_s`` (lists, seconds per counted frame),
-``node_peak_rss_mb``, ``node_rss_mb``, ``startup_s``. Exit code 2 with one line on stderr when the
-node cannot start or stops answering.
+``node_peak_rss_mb``, ``node_rss_mb``, ``startup_s`` (and ``stream_answered_hz``, ``stream_sent``). Exit code 2
+with one line on stderr when the node cannot start or stops answering.
 """
 
 from __future__ import annotations
@@ -111,9 +115,12 @@ def measure(
     answer_timeout_s: float = 30.0,
     map_path: str | None = None,
     refine_every: int = 1,
+    stream_hz: float = 0.0,
+    stream_s: float = 8.0,
 ) -> dict:
     """Run the node and the bare Localizer interleaved over ``frames (N, H, W, 3) uint8 RGB`` (cycled); see module doc.
-    ``map_path``: both refine against this keyframe map every ``refine_every``-th frame.
+    ``map_path``: both refine against this keyframe map every ``refine_every``-th frame; ``stream_hz`` > 0: then the
+    node alone at that camera rate for ``stream_s`` seconds.
 
     ``transport="large_data"`` sets ``FASTRTPS_DEFAULT_PROFILES_FILE`` in this process (before its DDS
     participant exists) and so in the node's environment."""
@@ -161,7 +168,9 @@ def measure(
             if k >= warmup:
                 latency.append(node_s)
                 step.append(bare_s)
+        streamed = _stream(probe, frames, warmup + repetitions, stream_hz, stream_s) if stream_hz > 0 else {}
         return {
+            **streamed,
             "latency_s": latency,
             "step_s": step,
             "node_peak_rss_mb": proc_status_mb(node.proc.pid, "VmHWM"),
@@ -171,6 +180,29 @@ def measure(
     finally:
         node.stop()
         probe.close()
+
+
+def _stream(probe: _Probe, frames: np.ndarray, first: int, rate_hz: float, seconds: float) -> dict:
+    """Frames ``first, first + 1, ...`` published at ``rate_hz`` for ``seconds`` without waiting, then up to 2 s for
+    the last answers: ``{"stream_answered_hz", "stream_sent"}`` (see the module docstring)."""
+    count = max(2, round(rate_hz * seconds))
+    stamps, start = [], time.monotonic()
+    for i in range(count):
+        probe.spin_until(start + i / rate_hz)
+        stamp = (first + i) * FRAME_INTERVAL_S
+        msg = conversions.array_to_image(
+            frames[(first + i) % len(frames)],
+            "rgb8",
+            Header(stamp=conversions.seconds_to_stamp(stamp), frame_id="camera"),
+        )
+        stamps.append(conversions.stamp_to_seconds(msg.header.stamp))
+        if i == 0:
+            sent = time.perf_counter()
+        probe.image_pub.publish(msg)
+    probe.spin_until(time.monotonic() + 2.0, lambda: stamps[-1] in probe.pose_at)
+    answered = [probe.pose_at[s] for s in stamps if s in probe.pose_at]
+    span = max(answered) - sent if answered else float("inf")
+    return {"stream_answered_hz": len(answered) / span, "stream_sent": count}
 
 
 def _through_node(probe: _Probe, node: _NodeProcess, msg: Image, stamp: float, timeout_s: float) -> float:
@@ -222,6 +254,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--refine-every", type=int, default=1, metavar="K", help="with --map: refine every K-th frame (default 1)"
     )
+    parser.add_argument(
+        "--stream-hz",
+        type=float,
+        default=0.0,
+        metavar="R",
+        help="then feed the node at R frames a second without waiting for answers (default 0: not done)",
+    )
+    parser.add_argument("--stream-s", type=float, default=8.0, metavar="S", help="seconds of --stream-hz (default 8)")
     args = parser.parse_args(argv)
     try:
         frames = np.load(args.frames)
@@ -238,6 +278,8 @@ def main(argv: list[str] | None = None) -> int:
             args.transport,
             map_path=args.map,
             refine_every=args.refine_every,
+            stream_hz=args.stream_hz,
+            stream_s=args.stream_s,
         )
     except UserError as err:
         print(f"latency_bench: error: {err}", file=sys.stderr)

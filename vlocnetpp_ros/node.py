@@ -25,8 +25,10 @@ Parameters: :mod:`vlocnetpp_ros.parameters` (``config/localizer.yaml`` sets ever
 
 All numbers come from :class:`vlocnetpp_core.inference.localizer.Localizer`; this node only converts
 messages. The subscription callback only drops the message into a one-slot mailbox (never
-blocks); a worker thread takes the newest frame, so a camera faster than the model has its
-older frames dropped and counted. Camera topics use reliability ``BEST_AVAILABLE``: reliable
+blocks); a worker thread takes the newest frame through the network (``Localizer.begin``), so a camera faster
+than the model has its older frames dropped and counted, and hands it to a second thread that refines it and
+publishes (``Localizer.finish``) while the next frame's network runs: at most one frame waits between the two.
+Camera topics use reliability ``BEST_AVAILABLE``: reliable
 delivery from a reliable camera, and a best-effort camera still connects (see docs/node.md
 for the transport settings large best-effort streams need). A bad frame (encoding, size,
 truncated data, NaN output, ...) is logged (throttled), counted and skipped; the node keeps going.
@@ -47,10 +49,10 @@ buffers stay bounded too, whatever the history depth of the publishers.
 from __future__ import annotations
 
 import gc
+import queue
 import sys
 import threading
 import time
-from collections import deque
 from pathlib import Path
 
 import rclpy
@@ -73,6 +75,7 @@ from vlocnetpp_core.inference.localizer import Localizer
 from vlocnetpp_core.inference.preprocess import FrameError
 from vlocnetpp_core.threads import resolve_threads, use_threads
 from vlocnetpp_ros import conversions, dds_profile
+from vlocnetpp_ros.depth_matcher import DepthMatcher
 from vlocnetpp_ros.diagnostics import NodeStats, ThrottledLog
 from vlocnetpp_ros.heap import Heap
 from vlocnetpp_ros.mailbox import LatestMailbox
@@ -85,8 +88,6 @@ from vlocnetpp_ros.parameters import PARAMETERS, check_parameters, default_check
 # for publishers of any depth (docs/node.md, "Memory under bad input"). Bounded: at most 10 messages
 # wait in DDS, the callback moves them to the one-slot mailbox at once.
 CAMERA_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.BEST_AVAILABLE)
-DEPTH_MATCH_FRAMES = 8  # depth images (or stamps of refused ones) kept for matching colour stamps
-DEPTH_WAIT_S = 0.05  # how long a colour frame waits for its depth image (in the worker)
 
 
 class LocalizerNode(Node):
@@ -133,10 +134,9 @@ class LocalizerNode(Node):
         # a call site of its own: rclpy refuses two severities logged from one line (ThrottledLog's)
         self.note = ThrottledLog(lambda line: self.get_logger().info(line))
         self._mailbox = LatestMailbox()
+        self._begun: queue.Queue = queue.Queue(maxsize=1)  # frames past the network, waiting for the publisher stage
         self._intrinsics = None
-        # (stamp, depth Image or None when it was refused on arrival), newest last
-        self._depths: deque[tuple[tuple[int, int], Image | None]] = deque(maxlen=DEPTH_MATCH_FRAMES)
-        self._depth_arrived = threading.Condition()
+        self._depths = DepthMatcher(self._ignore)
 
         # outputs in the node's namespace (topics.py names them as in the root namespace)
         self.pose_pub = self.create_publisher(PoseStamped, topics.POSE_TOPIC.lstrip("/"), 10)
@@ -156,7 +156,7 @@ class LocalizerNode(Node):
         image_topic = p["image_topic"].rstrip("/") + "/compressed" if p["use_compressed"] else p["image_topic"]
         self._inputs = {image_topic: (CompressedImage if p["use_compressed"] else Image, self._on_image)}
         if p["depth_topic"]:
-            self._inputs[p["depth_topic"]] = (Image, self._on_depth)
+            self._inputs[p["depth_topic"]] = (Image, self._depths.add)
         if p["camera_info_topic"]:
             self._inputs[p["camera_info_topic"]] = (CameraInfo, self._on_camera_info)
         self._subscriptions_by_topic: dict[str, object] = {}
@@ -168,8 +168,12 @@ class LocalizerNode(Node):
         self.create_timer(0.5, self._resubscribe_incompatible)
 
         self._stop = threading.Event()
-        self._worker = threading.Thread(target=self._work, name="vlocnetpp-inference", daemon=True)
-        self._worker.start()
+        self._workers = [
+            threading.Thread(target=target, name=name, daemon=True)
+            for target, name in ((self._work, "vlocnetpp-inference"), (self._finish_and_publish, "vlocnetpp-publish"))
+        ]
+        for worker in self._workers:
+            worker.start()
         extrinsics = (self.extrinsics or CameraExtrinsics.identity()).values()
         pose_of = f"{p['base_frame']} (camera_extrinsics {extrinsics})" if p["base_frame"] else "the camera"
         refining = (
@@ -220,32 +224,29 @@ class LocalizerNode(Node):
             return
         self.stats.arrived(now, self._mailbox.put((msg, now)))
 
-    def _on_depth(self, msg: Image) -> None:
-        key = _stamp_key(msg.header.stamp)
-        try:
-            conversions.check_depth(msg)
-        except FrameError as err:
-            self._ignore(err)
-            msg = None  # only its stamp is kept: the colour frame neither waits for it nor counts it missing
-        with self._depth_arrived:
-            self._depths.append((key, msg))
-            self._depth_arrived.notify_all()
-
     def _on_camera_info(self, msg: CameraInfo) -> None:
         try:
             self._intrinsics = conversions.camera_info_to_intrinsics(msg)
         except FrameError as err:
             self._ignore(err)
 
-    # ------------------------------------------------------------------ worker
+    # ------------------------------------------------------------------ workers: network, then refinement and outputs
 
     def _work(self) -> None:
+        """First stage: the newest frame through the network (:meth:`Localizer.begin`), handed to the second stage
+        (which may still refine and publish the frame before: the next frame's network runs meanwhile)."""
         while not self._stop.is_set():
             item = self._mailbox.take(timeout=0.2)
             if item is None:
                 continue
             try:
-                self._process(*item)
+                begun = self._begin(*item)
+                while not self._stop.is_set():
+                    try:
+                        self._begun.put(begun, timeout=0.2)
+                        break
+                    except queue.Full:
+                        continue
             except FrameError as err:
                 self._reject(err)
             except Exception as err:  # the node never dies on a frame
@@ -253,32 +254,52 @@ class LocalizerNode(Node):
                     return
                 self._reject(FrameError("internal_error", f"{type(err).__name__}: {err}"))
             finally:
-                item = None  # the message and its buffers go now, not when the next frame arrives
+                item = begun = None  # the message and its buffers go now, not when the next frame arrives
 
-    def _process(self, msg, arrival: float) -> None:
+    def _begin(self, msg, arrival: float) -> tuple:
         if isinstance(msg, CompressedImage):
             image, encoding = conversions.compressed_to_rgb(msg), "rgb8"
         else:
             image, encoding = conversions.image_to_array(msg), msg.encoding
         stamp = conversions.stamp_to_seconds(msg.header.stamp)
-        depth = self._matching_depth(msg.header.stamp)
+        depth = self._depths.matching(msg.header.stamp) if self.params["depth_topic"] else None
         try:
-            result = self.localizer.step(image, encoding, stamp, depth=depth, intrinsics=self._intrinsics)
+            step = self.localizer.begin(image, encoding, stamp, depth=depth, intrinsics=self._intrinsics)
         except FrameError as err:
             if depth is None or err.reason != "depth_size":
                 raise
             self._ignore(err)  # use the predicted depth for this frame
-            result = self.localizer.step(image, encoding, stamp, intrinsics=self._intrinsics)
+            step = self.localizer.begin(image, encoding, stamp, intrinsics=self._intrinsics)
+        return msg.header, arrival, step
+
+    def _finish_and_publish(self) -> None:
+        """Second stage, in the order of the first: the refinement (:meth:`Localizer.finish`) and every output."""
+        while not self._stop.is_set():
+            try:
+                begun = self._begun.get(timeout=0.2)
+            except queue.Empty:
+                continue
+            try:
+                self._publish(begun[0], begun[1], self.localizer.finish(begun[2]))
+            except Exception as err:  # the node never dies on a frame
+                if self._stop.is_set() or not rclpy.ok(context=self.context):
+                    return
+                self._reject(FrameError("internal_error", f"{type(err).__name__}: {err}"))
+            finally:
+                begun = None
+
+    def _publish(self, header: Header, arrival: float, result) -> None:
+        stamp = result.stamp
         if result.reset_reason not in (None, "start"):
             self.note(
                 f"reset.{result.reset_reason}", f"temporal state reset ({result.reset_reason}) at stamp {stamp:.3f}"
             )
-        frame = msg.header.frame_id
+        frame = header.frame_id
         network = (result.network_t, result.network_q)
         if self.extrinsics is not None:
             network = base_pose(*network, self.extrinsics)
             result = to_base_frame(result, self.extrinsics)
-        pose_header = Header(stamp=msg.header.stamp, frame_id=self.params["map_frame"])
+        pose_header = Header(stamp=header.stamp, frame_id=self.params["map_frame"])
         self.pose_pub.publish(conversions.pose_stamped(result, pose_header))
         if self.network_pose_pub is not None:
             self.network_pose_pub.publish(PoseStamped(header=pose_header, pose=conversions.pose_msg(*network)))
@@ -286,41 +307,14 @@ class LocalizerNode(Node):
         self.odom_pub.publish(
             conversions.odometry(
                 result,
-                Header(stamp=msg.header.stamp, frame_id=self.params["odom_frame"]),
+                Header(stamp=header.stamp, frame_id=self.params["odom_frame"]),
                 self.params["base_frame"] or frame,
             )
         )
         if self.seg_pub is not None:
-            self.seg_pub.publish(conversions.mask_to_image(result.mask, Header(stamp=msg.header.stamp, frame_id=frame)))
+            self.seg_pub.publish(conversions.mask_to_image(result.mask, Header(stamp=header.stamp, frame_id=frame)))
         now = time.monotonic()
         self.stats.processed_frame(now, now - arrival, result.reset_reason, result.source, result.refine_status)
-
-    def _matching_depth(self, stamp):
-        """Depth (metres) with exactly this stamp, waiting up to ``DEPTH_WAIT_S`` for it; None: use the predicted depth
-        (also when the depth image with this stamp was refused on arrival: counted then)."""
-        if not self.params["depth_topic"]:
-            return None
-        key = _stamp_key(stamp)
-
-        def find():
-            return next((entry for entry in reversed(self._depths) if entry[0] == key), None)
-
-        with self._depth_arrived:
-            self._depth_arrived.wait_for(lambda: find() is not None, DEPTH_WAIT_S)
-            entry = find()
-        if entry is None:
-            self._ignore(
-                FrameError("depth_missing", "no depth image with the colour image's stamp; using the predicted depth")
-            )
-            return None
-        match = entry[1]
-        if match is None:
-            return None
-        try:
-            return conversions.depth_to_array(match)
-        except FrameError as err:
-            self._ignore(err)
-            return None
 
     def _reject(self, err: FrameError) -> None:
         """A camera frame skipped."""
@@ -341,15 +335,11 @@ class LocalizerNode(Node):
         self._heap.trim()
 
     def close(self, timeout_s: float = 1.5) -> None:
-        """Stop the worker (waits for the frame in progress, at most ``timeout_s``)."""
+        """Stop the workers (each finishes its frame in progress, at most ``timeout_s``)."""
         self._stop.set()
         self._mailbox.close()
-        self._worker.join(timeout_s)
-
-
-def _stamp_key(stamp) -> tuple[int, int]:
-    """``builtin_interfaces/Time`` as a hashable value that holds no message."""
-    return int(stamp.sec), int(stamp.nanosec)
+        for worker in self._workers:
+            worker.join(timeout_s)
 
 
 def main(args: list[str] | None = None) -> int:

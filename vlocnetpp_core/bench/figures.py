@@ -136,9 +136,13 @@ def node_latency(
     timeout_s: float = 300.0,
     map_path: Path | None = None,
     refine_every: int = 1,
+    stream_hz: float = 0.0,
+    stream_s: float = 8.0,
 ) -> dict:
     """Run the ``latency-bench`` ROS program (the real node over DDS vs the bare Localizer,
-    interleaved); medians of its per-frame seconds, and the node's memory. ``map_path``: both refine against it."""
+    interleaved); medians of its per-frame seconds, and the node's memory. ``map_path``: both refine against it;
+    ``stream_hz`` > 0: then the node fed at that camera rate for ``stream_s`` (``node_stream_hz``: poses it published
+    per second)."""
     path = workdir / "camera_frames.npy"
     np.save(path, np.stack(frames))
     argv = [
@@ -160,6 +164,7 @@ def node_latency(
         "--transport",
         transport,
         *(["--map", str(map_path), "--refine-every", str(refine_every)] if map_path is not None else []),
+        *(["--stream-hz", str(stream_hz), "--stream-s", str(stream_s)] if stream_hz > 0 else []),
     ]
     try:
         proc = subprocess.run(argv, capture_output=True, text=True, timeout=timeout_s, stdin=subprocess.DEVNULL)
@@ -175,6 +180,7 @@ def node_latency(
         "node_peak_rss_mb": raw["node_peak_rss_mb"],
         "node_rss_mb": raw["node_rss_mb"],
         "node_startup": raw["startup_s"],
+        **({"node_stream_hz": raw["stream_answered_hz"]} if "stream_answered_hz" in raw else {}),
     }
 
 

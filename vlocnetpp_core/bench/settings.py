@@ -28,6 +28,7 @@ class BenchSettings:
     node_transport: str = "large_data"  # or "environment" (see the latency-bench program, docs/performance.md)
     node_repetitions: int = 30
     node_warmup: int = 3
+    node_stream_frames: int = 240  # frames sent at the refinement's camera rate (30/s) for node_refined_hz
     converter_frames: int = 120
     synth_frames: int = 20
     synth_size: tuple[int, int] = (320, 180)
@@ -41,6 +42,7 @@ class BenchSettings:
             paper_input_size=(224, 128),
             node_repetitions=8,
             node_warmup=2,
+            node_stream_frames=60,
             converter_frames=30,
             synth_frames=6,
         )

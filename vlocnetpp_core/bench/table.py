@@ -70,6 +70,9 @@ def _refinement_basis(report: dict) -> str:
         f"{100 * report['refine_share_every1']:.0f} % refined), "
         f"every 2nd {t['refine_step_every2']:.1f} ms"
     )
-    if "node_refined_latency_every2" in t:
-        text += f"; node every 2nd frame {1000 / t['node_refined_latency_every2']:.1f} Hz"
+    if "node_refined_latency_every1" in t:
+        text += (
+            f"; node lockstep {1000 / t['node_refined_latency_every1']:.1f} Hz, every 2nd frame "
+            f"{1000 / t['node_refined_stream_every2']:.1f} Hz (lockstep {1000 / t['node_refined_latency_every2']:.1f})"
+        )
     return text
