@@ -143,6 +143,7 @@ def test_refinement_figures_measure_refined_frames(report):
     assert t["refine_step_every1"] > t["refine_step_none"], t
     assert "node lockstep" in format_table(report) and "every 2nd frame" in format_table(report)
     assert t["node_refined_stream_every1"] > 0 and t["node_refined_latency_every1"] > 0, t
+    assert report["node_refine_share_every1"] >= 0.5, report  # the node's own diagnostics after the stream
 
 
 def test_quick_run_says_what_it_measured(report):

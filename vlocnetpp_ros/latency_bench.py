@@ -20,7 +20,8 @@ second for ``--stream-s`` seconds; ``stream_answered_hz`` is the number of poses
 (first frame sent to last pose received): the most frames a second the node gets through when R is above that.
 
 Prints one JSON object: ``latency_s`` and ``step_s`` (lists, seconds per counted frame),
-``node_peak_rss_mb``, ``node_rss_mb``, ``startup_s`` (and ``stream_answered_hz``, ``stream_sent``). Exit code 2
+``node_peak_rss_mb``, ``node_rss_mb``, ``startup_s`` (and ``stream_answered_hz``, ``stream_sent``,
+``refined_share``: the node's ``refined`` diagnostics after the stream, with a map). Exit code 2
 with one line on stderr when the node cannot start or stops answering.
 """
 
@@ -34,6 +35,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import Image
 from std_msgs.msg import Header
@@ -65,6 +67,7 @@ class _Probe(DdsClient):
         super().__init__("vlocnetpp_latency_bench", namespace)
         self.image_pub = self.node.create_publisher(Image, f"{namespace}/camera/image", _QOS)
         self.pose_at: dict[float, float] = {}
+        self.diagnostics: dict[str, str] = {}  # the node's latest /diagnostics values
         self.seg_at: dict[float, float] = {}
         stamp_of = conversions.stamp_to_seconds
         self.subs = [
@@ -81,6 +84,12 @@ class _Probe(DdsClient):
                 _QOS,
             ),
         ]
+        self.node.create_subscription(DiagnosticArray, "/diagnostics", lambda m: self._diagnostics(m, namespace), 10)
+
+    def _diagnostics(self, msg: DiagnosticArray, namespace: str) -> None:
+        for status in msg.status:
+            if status.hardware_id == f"{namespace}/localizer":
+                self.diagnostics = {kv.key: kv.value for kv in status.values}
 
     def connected(self) -> bool:
         return self.image_pub.get_subscription_count() > 0 and all(s.get_publisher_count() > 0 for s in self.subs)
@@ -202,7 +211,14 @@ def _stream(probe: _Probe, frames: np.ndarray, first: int, rate_hz: float, secon
     probe.spin_until(time.monotonic() + 2.0, lambda: stamps[-1] in probe.pose_at)
     answered = [probe.pose_at[s] for s in stamps if s in probe.pose_at]
     span = max(answered) - sent if answered else float("inf")
-    return {"stream_answered_hz": len(answered) / span, "stream_sent": count}
+    probe.diagnostics = {}
+    probe.spin_until(time.monotonic() + 3.0, lambda: bool(probe.diagnostics))  # the node's next (1 Hz) diagnostics
+    refined = probe.diagnostics.get("refined")
+    return {
+        "stream_answered_hz": len(answered) / span,
+        "stream_sent": count,
+        "refined_share": None if refined is None else float(refined),
+    }
 
 
 def _through_node(probe: _Probe, node: _NodeProcess, msg: Image, stamp: float, timeout_s: float) -> float:

@@ -86,6 +86,8 @@ NOT_TIMES = (
     "compiled_max_abs_diff",
     "refine_share_every1",
     "refine_share_every2",
+    "node_refine_share_every1",
+    "node_refine_share_every2",
 )  # measured values that are not seconds
 
 

@@ -181,6 +181,7 @@ def node_latency(
         "node_rss_mb": raw["node_rss_mb"],
         "node_startup": raw["startup_s"],
         **({"node_stream_hz": raw["stream_answered_hz"]} if "stream_answered_hz" in raw else {}),
+        **({"node_refined_share": raw["refined_share"]} if raw.get("refined_share") is not None else {}),
     }
 
 

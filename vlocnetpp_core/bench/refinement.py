@@ -117,4 +117,5 @@ def node_rates(
         )
         out[f"node_refined_latency_every{k}"] = node["node_latency"]
         out[f"node_refined_stream_every{k}"] = 1.0 / node["node_stream_hz"]
+        out[f"node_refine_share_every{k}"] = node.get("node_refined_share")
     return out

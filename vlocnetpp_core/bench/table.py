@@ -71,8 +71,10 @@ def _refinement_basis(report: dict) -> str:
         f"every 2nd {t['refine_step_every2']:.1f} ms"
     )
     if "node_refined_latency_every1" in t:
+        share = report.get("node_refine_share_every1")
         text += (
-            f"; node lockstep {1000 / t['node_refined_latency_every1']:.1f} Hz, every 2nd frame "
+            (f"; node: {100 * share:.0f} % of its poses refined" if share is not None else "")
+            + f"; node lockstep {1000 / t['node_refined_latency_every1']:.1f} Hz, every 2nd frame "
             f"{1000 / t['node_refined_stream_every2']:.1f} Hz (lockstep {1000 / t['node_refined_latency_every2']:.1f})"
         )
     return text
