@@ -35,9 +35,8 @@ def single_threaded_blas() -> None:
     """Put the OpenBLAS libraries loaded in this process (numpy's, OpenCV's; torch uses MKL) on one thread.
 
     Their products here are small (PnP, keyframe search, retrieval), and OpenBLAS's worker threads spin-wait after
-    each call: beside the network's thread they took a core from it. A refining ``Localizer.step`` of the shipped
-    model on 2 cores used 163 ms of CPU in 82 ms with two OpenBLAS threads, 79 ms in 52 ms with one
-    (docs/performance.md, ``node_refined_hz``)."""
+    each call: beside the network's thread they took a core from it (measured: docs/performance.md,
+    ``node_refined_hz``)."""
     from threadpoolctl import ThreadpoolController
 
     ThreadpoolController().select(internal_api="openblas").limit(limits=1)

@@ -193,7 +193,8 @@ def measure(
 
 def _stream(probe: _Probe, frames: np.ndarray, first: int, rate_hz: float, seconds: float) -> dict:
     """Frames ``first, first + 1, ...`` published at ``rate_hz`` for ``seconds`` without waiting, then up to 2 s for
-    the last answers: ``{"stream_answered_hz", "stream_sent"}`` (see the module docstring)."""
+    the last answers, then the node's next diagnostics: ``{"stream_answered_hz", "stream_sent", "refined_share"}``
+    (see the module docstring)."""
     count = max(2, round(rate_hz * seconds))
     stamps, start = [], time.monotonic()
     for i in range(count):
