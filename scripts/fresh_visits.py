@@ -29,13 +29,15 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 # 0 trains, 11 validates the shipped model; 101, 7, 23, 42 ranked the recipe (docs/results.md); 5, 202 the tests'
-# visits; the refinement's verdicts (docs/results.md, 2026-12-20 and 2026-12-06): never drawn again, so the next
-# verdict is on other visits
+# visits; 791569, 835667, 943975, 479491 chose the odometry fusion's constants with 11; the verdicts (docs/results.md):
+# never drawn again, so the next verdict is on other visits
 # fmt: off
 SPENT = {0, 5, 7, 11, 23, 42, 101, 202,
          307008, 445811, 936886, 733135, 107868, 370004, 177925, 600629,  # refinement, EPnP (2026-12-20)
          740804, 762581, 939547, 526530, 342913, 570627, 193802, 711590,  # refinement, AP3P (2026-12-06)
-         684805, 794529, 695689, 164404, 978398, 877148, 728843, 306382}  # AP3P, inliers again (2026-12-06)
+         684805, 794529, 695689, 164404, 978398, 877148, 728843, 306382,  # AP3P, inliers again (2026-12-06)
+         791569, 835667, 943975, 479491,  # validation of the odometry fusion's constants (2026-12-07)
+         419167, 913411, 340430, 244380, 161928, 817369, 153345, 526595}  # the fusion's verdict (2026-12-07)
 # fmt: on
 COLUMNS = [
     ("t [m]", "pose", "median_translation_m", 1, "{:.3f}"),
@@ -147,6 +149,8 @@ def rows_of(label: str, report: dict, first: bool) -> dict[str, dict]:
     baselines."""
     o = report["overall"]
     rows = {f"{label} (network)": o}
+    if "frame_network" in report:
+        rows[f"{label} (network, each frame alone)"] = report["frame_network"]["overall"]
     if "pose_refined" in o:
         rows[f"{label} refined"] = {"pose": o["pose_refined"]}
     if first:

@@ -242,4 +242,6 @@ def _result() -> LocalizerResult:
         seconds=0.01,
         network_t=t,
         network_q=q,
+        frame_t=t,
+        frame_q=q,
     )

@@ -130,3 +130,31 @@ def test_odometry_gaps_prints_the_predicted_step_per_frame_gap(fresh_loop_dir):
     assert gaps == [0, 1, 2]
     assert true[0] == 0.0 and 0 < true[1] < true[2]
     assert predicted[0] < predicted[1] < predicted[2]
+
+
+def test_the_localizers_pose_is_its_frame_poses_fused_with_its_odometry(fresh_loop):
+    """``t, q`` (and ``network_t``) of the shipped localizer are OdometryFusion of its own frame poses and relative
+    poses, restarted at the reset; without ``fuse_odometry`` they are the frame poses."""
+    from vlocnetpp_core.inference.pose_fusion import OdometryFusion
+
+    fused, alone = (
+        Localizer.from_checkpoint(shipped_checkpoint(), num_threads=2, fuse_odometry=f) for f in (True, False)
+    )
+    fusion = OdometryFusion(fused.pose_variance)
+    frames = fresh_loop[:30]
+    for k, f in enumerate(frames):
+        stamp = 0.05 * k + (5.0 if k >= 20 else 0.0)  # a gap before frame 20: a reset, the fusion restarts
+        a = fused.step(f.image, "rgb8", stamp=stamp, intrinsics=f.intrinsics)
+        b = alone.step(f.image, "rgb8", stamp=stamp, intrinsics=f.intrinsics)
+        np.testing.assert_array_equal(b.t, b.frame_t)
+        np.testing.assert_array_equal(b.t, b.network_t)
+        np.testing.assert_allclose(a.frame_t, b.frame_t, atol=1e-12)
+        want_t, want_q = fusion.update(a.frame_t, a.frame_q, a.rel_t, a.rel_q, continued=a.reset_reason is None)
+        np.testing.assert_allclose(a.t, want_t, atol=1e-12)
+        np.testing.assert_allclose(a.q, want_q, atol=1e-12)
+        np.testing.assert_array_equal(a.network_t, a.t)
+        assert (a.reset_reason is None) == (k not in (0, 20)), (k, a.reset_reason)
+        if k in (0, 20):
+            np.testing.assert_array_equal(a.t, a.frame_t)
+        elif k > 1:
+            assert not np.allclose(a.t, a.frame_t)

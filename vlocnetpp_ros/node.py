@@ -118,6 +118,7 @@ class LocalizerNode(Node):
             backend=p["backend"],
             map_path=map_path,
             refine_every=p["refine_every"],
+            fuse_odometry=p["fuse_odometry"],
         )
         w, h = self.localizer.input_size
         self.stats = NodeStats(

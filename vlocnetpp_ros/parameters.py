@@ -59,6 +59,11 @@ PARAMETERS: dict[str, tuple[object, str]] = {
         1,
         "with a map: refine every k-th frame, the refined pose moved on by the odometry in between (1: every frame)",
     ),
+    "fuse_odometry": (
+        True,
+        "fuse the network's global poses with its own odometry over the frames (a causal filter, docs/node.md); "
+        "false: every frame's global pose alone (for an estimator that fuses vlocnet/pose with vlocnet/odometry)",
+    ),
 }
 # What config/localizer.yaml sets apart from the defaults above: the package's launch YAML refines against the
 # shipped map beside the shipped model (a node started without it does not refine), with ONNX Runtime (faster on a

@@ -30,6 +30,7 @@ from vlocnetpp_core.errors import UserError
 from vlocnetpp_core.evaluation.metrics import SequenceRecorder, SequenceResult, evaluate_sequences
 from vlocnetpp_core.evaluation.report import (
     add_baseline,
+    add_frame_poses,
     add_report_arguments,
     check_report_args,
     format_report,
@@ -96,16 +97,19 @@ def _check_mask(frame, mask: np.ndarray) -> None:
 
 @dataclass
 class LocalizerRun:
-    """What :func:`run_localizer` measured: per-sequence ``results`` (the network's global pose as the prediction),
+    """What :func:`run_localizer` measured: per-sequence ``results`` (the network's global pose, fused with its
+    odometry when the localizer does, as the prediction),
     frames ``rejected`` per reason, the retrieval ``descriptors (N_k, D)`` of each result's frames (or None), the
     published poses of a refining localizer (``tracks``, or None) and the structure-based baseline's poses per
-    result (``structure``: ``(t (N_k, 3), q (N_k, 4))``, or None)."""
+    result (``structure``: ``(t (N_k, 3), q (N_k, 4))``, or None), and the network's pose of each frame alone when the
+    localizer fuses it with the odometry (``frame_poses``, shaped like ``structure``, or None)."""
 
     results: list[SequenceResult]
     rejected: dict[str, int]
     descriptors: list[np.ndarray] | None = None
     tracks: list | None = None
     structure: list[tuple[np.ndarray, np.ndarray]] | None = None
+    frame_poses: list[tuple[np.ndarray, np.ndarray]] | None = None
 
 
 def run_localizer(
@@ -142,6 +146,7 @@ def run_localizer(
         [] if describe else None,
         [] if localizer.refinement is not None else None,
         [] if structure is not None else None,
+        [] if localizer.fusion is not None else None,
     )
     try:
         for rng in ranges:
@@ -152,7 +157,7 @@ def run_localizer(
             recorder = SequenceRecorder(name, localizer.num_classes)
             keep = {rng[p] for p in sample_positions(len(rng), samples)}
             localizer.reset("start")
-            described, track, located = [], RefinedTrack(), []
+            described, track, located, single = [], RefinedTrack(), [], []
             for i in rng:
                 frame = index.load(i, depth=use_depth)
                 bar.update(1)
@@ -172,6 +177,7 @@ def run_localizer(
                 if structure is not None:
                     located.append(structure.locate_image(frame.image, frame.intrinsics, described[-1])[:2])
                 track.add(out)
+                single.append((out.frame_t, out.frame_q))
                 recorder.add(
                     frame.stamp,
                     frame.t,
@@ -197,6 +203,8 @@ def run_localizer(
                     run.tracks.append(track)
                 if structure is not None:
                     run.structure.append(tuple(np.array(v) for v in zip(*located, strict=True)))
+                if run.frame_poses is not None:
+                    run.frame_poses.append(tuple(np.array(v) for v in zip(*single, strict=True)))
     finally:
         bar.close()
     return run
@@ -248,6 +256,8 @@ def run(args: argparse.Namespace) -> int:
     report = evaluate_sequences(results, thresholds, lengths, class_names)
     if not localizer.has_segmentation:
         without_segmentation(report, "none: the model has no semantic stream (a pose-only config)")
+    if run.frame_poses is not None:
+        add_frame_poses(report, results, run.frame_poses, thresholds)
     if reference is not None:
         add_baseline(report, results, run.descriptors, reference, thresholds)
     if structure is not None:
@@ -278,7 +288,7 @@ def run(args: argparse.Namespace) -> int:
         print(
             "frames rejected by the localizer (left out): " + ", ".join(f"{k} {v}" for k, v in sorted(rejected.items()))
         )
-    write_outputs(report, results, class_names, args.json, args.trajectories, args.plots)
+    write_outputs(report, results, class_names, args.json, args.trajectories, args.plots, run.frame_poses)
     return 0
 
 

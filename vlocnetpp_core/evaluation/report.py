@@ -4,7 +4,8 @@ A report is the dict of :func:`vlocnetpp_core.evaluation.metrics.evaluate_sequen
 ``per_sequence``, each with ``pose``, ``odometry``, ``segmentation``, ``timing``) plus ``meta``
 and, when a retrieval reference was given, ``baseline``: the same pose metrics for the
 nearest-neighbour retrieval baseline (:mod:`vlocnetpp_core.evaluation.retrieval`) on the same frames, and
-whether the network beats it (``network_beats_baseline``: translation and rotation medians). A
+whether the network beats it (``network_beats_baseline``: translation and rotation medians), and
+``frame_network``: the network's global pose of each frame alone when the localizer fused it with its odometry. A
 report of a model without segmentation (pose-only) has no ``segmentation`` entries but a
 ``segmentation_note`` saying why (:func:`without_segmentation`); its table has no segmentation columns.
 """
@@ -15,7 +16,7 @@ import argparse
 import json
 import math
 import os
-from collections.abc import Iterable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -174,6 +175,24 @@ def add_baseline(
     return report
 
 
+FRAME_NAME = "network, each frame alone"
+
+
+def add_frame_poses(
+    report: dict,
+    results: Sequence[SequenceResult],
+    poses: Sequence[tuple[np.ndarray, np.ndarray]],
+    thresholds: Sequence[tuple[float, float]] = DEFAULT_THRESHOLDS,
+) -> dict:
+    """Score the network's global pose of each frame alone (``poses[k] = (t (N_k, 3), q (N_k, 4))``, before the
+    odometry fusion of :mod:`vlocnetpp_core.inference.pose_fusion`) on the frames of ``results`` as
+    ``report["frame_network"]``, shaped like the ``baseline``."""
+    from vlocnetpp_core.mapping.evaluation import scored_poses
+
+    report["frame_network"] = {"name": FRAME_NAME, **scored_poses(results, poses, thresholds)}
+    return report
+
+
 def _less(a: float | None, b: float | None) -> bool | None:
     return None if a is None or b is None else bool(a < b)
 
@@ -248,7 +267,7 @@ def format_report(report: dict, frames: dict[str, int] | None = None) -> str:
     rows.append(row("overall (network)" if "pose_refined" in overall else "overall", overall, total))
     if "pose_refined" in overall:
         rows.append(row("refined", {"pose": overall["pose_refined"]}, total))
-    for key in ("baseline", "structure_baseline"):
+    for key in ("frame_network", "baseline", "structure_baseline"):
         if report.get(key):
             rows.append(row(report[key]["name"], report[key]["overall"], total))
     widths = [max(len(h), *(len(r[c]) for r in rows)) for c, h in enumerate(headers)]
@@ -297,17 +316,24 @@ def write_json(path: str | Path, data: dict) -> None:
     os.replace(tmp, path)
 
 
-def write_trajectories(folder: str | Path, results: Iterable[SequenceResult]) -> list[Path]:
-    """``<folder>/<seq>/{ground_truth,global_pose,odometry}.tum`` (odometry only when predicted)."""
-    from vlocnetpp_core.evaluation.trajectory import write_tum
+def write_trajectories(
+    folder: str | Path,
+    results: Sequence[SequenceResult],
+    frame_poses: Sequence[tuple[np.ndarray, np.ndarray]] | None = None,
+) -> list[Path]:
+    """``<folder>/<seq>/{ground_truth,global_pose,odometry}.tum`` (odometry only when predicted), and
+    ``frame_pose.tum``, the network's pose of each frame alone, with ``frame_poses[k] = (t (N_k, 3), q (N_k, 4))``."""
+    from vlocnetpp_core.evaluation.trajectory import Trajectory, write_tum
 
     written = []
-    for r in results:
+    for k, r in enumerate(results):
         sub = Path(folder) / r.name
+        frame = None if frame_poses is None else Trajectory(r.stamps, *frame_poses[k])
         for name, traj in (
             ("ground_truth", r.ground_truth()),
             ("global_pose", r.global_pose()),
             ("odometry", r.odometry()),
+            ("frame_pose", frame),
         ):
             if traj is not None:
                 write_tum(sub / f"{name}.tum", traj)
@@ -322,13 +348,15 @@ def write_outputs(
     json_path: str | Path | None = None,
     trajectories: str | Path | None = None,
     plots: str | Path | None = None,
+    frame_poses: Sequence[tuple[np.ndarray, np.ndarray]] | None = None,
 ) -> None:
-    """Write the report as JSON, the TUM trajectories and the plots, where asked, and say where they went."""
+    """Write the report as JSON, the TUM trajectories (with ``frame_poses``: the network's pose of each frame alone
+    too) and the plots, where asked, and say where they went."""
     if json_path:
         write_json(json_path, report)
         print(f"metrics: {json_path}")
     if trajectories:
-        write_trajectories(trajectories, results)
+        write_trajectories(trajectories, results, frame_poses)
         print(f"trajectories (TUM): {trajectories}")
     if plots:
         from vlocnetpp_core.evaluation.plots import write_plots

@@ -51,6 +51,7 @@ from vlocnetpp_core.camera.intrinsics import Intrinsics
 from vlocnetpp_core.errors import UserError
 from vlocnetpp_core.inference.checkpoint import calibration_variances, checkpoint_paths, load_checkpoint
 from vlocnetpp_core.inference.network_input import network_input
+from vlocnetpp_core.inference.pose_fusion import OdometryFusion
 from vlocnetpp_core.inference.preprocess import FrameError, to_rgb
 
 BACKENDS = ("torch", "onnx")
@@ -83,8 +84,10 @@ class LocalizerResult:
     )  # (H, W) uint8 class ids at the resolution of the given image; None: the model has no semantic stream
     reset_reason: str | None  # why the temporal state was reset before this frame, None when it was not
     seconds: float  # wall time of the step
-    network_t: np.ndarray  # the network's own global pose (t, q above when source is "network")
+    network_t: np.ndarray  # the network's global pose, fused with its odometry (t, q above when source is "network")
     network_q: np.ndarray
+    frame_t: np.ndarray  # the network's global pose of this frame alone (network_t without fuse_odometry)
+    frame_q: np.ndarray
     source: str = "network"  # of t, q and pose_covariance: "network", "refined" or "propagated" (mapping.stream)
     refine_status: str | None = None  # the refinement tried on this frame: "refined" or why not; None: none tried
     inliers: int = 0  # PnP inliers of the refinement tried (0 without)
@@ -118,13 +121,16 @@ class Localizer:
         onnx_path: str | Path | None = None,
         refiner=None,
         refine_every: int = 1,
+        fuse_odometry: bool = True,
     ):
         """``backend``: ``"torch"`` runs ``model.step`` with the process's torch threads (set by the program:
         :func:`vlocnetpp_core.threads.use_threads`); ``"onnx"`` runs the exported step with ONNX Runtime in
         a session of ``num_threads`` threads (:mod:`vlocnetpp_core.threads`; ``onnx_path`` if it matches these
         weights, else a cached export; see :mod:`vlocnetpp_core.inference.onnx_backend`). ``refiner``: a
         :class:`~vlocnetpp_core.mapping.refiner.Refiner` to refine the global pose against its map every
-        ``refine_every``-th frame (:mod:`vlocnetpp_core.mapping.stream`); None: the network's pose."""
+        ``refine_every``-th frame (:mod:`vlocnetpp_core.mapping.stream`); None: the network's pose.
+        ``fuse_odometry``: the network's pose fused with its own odometry over the frames
+        (:mod:`vlocnetpp_core.inference.pose_fusion`); False: every frame's global pose alone."""
         if backend not in BACKENDS:
             raise UserError(f"backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
         self.device = torch.device(device)
@@ -144,6 +150,7 @@ class Localizer:
         pose_var, odo_var = calibration_variances(meta)
         self.pose_variance = np.maximum(pose_var, MIN_VARIANCE)
         self.odometry_variance = np.maximum(odo_var, MIN_VARIANCE)
+        self.fusion = OdometryFusion(self.pose_variance) if fuse_odometry else None
         self._odom_t, self._odom_q = _IDENTITY_T.copy(), _IDENTITY_Q.copy()
         self._odom_steps = 0
         self.refinement = None
@@ -163,6 +170,7 @@ class Localizer:
         backend: str = "torch",
         map_path: str | Path | None = None,
         refine_every: int = 1,
+        fuse_odometry: bool = True,
     ) -> Localizer:
         """Load ``NAME.safetensors`` + ``NAME.json`` (see :mod:`vlocnetpp_core.inference.checkpoint`); the onnx
         backend uses ``NAME.onnx`` next to them when it was exported from these weights. ``map_path``: a keyframe
@@ -185,6 +193,7 @@ class Localizer:
             onnx_path=checkpoint_paths(path)[0].with_suffix(".onnx"),
             refiner=refiner,
             refine_every=refine_every,
+            fuse_odometry=fuse_odometry,
         )
 
     @property
@@ -314,7 +323,7 @@ class Localizer:
     ) -> LocalizerResult:
         """The frame's result from the network's outputs, the odometry moved on by its relative pose (mask, refinement
         and time are :meth:`finish`'s)."""
-        q = geometry.quat_normalize(quat)
+        frame_q = geometry.quat_normalize(quat)
         if reason is None:
             rel_t, rel_q = rel_xyz, geometry.quat_normalize(rel_quat)
             self._odom_t, self._odom_q = geometry.pose_compose(self._odom_t, self._odom_q, rel_t, rel_q)
@@ -326,9 +335,12 @@ class Localizer:
             rel_t, rel_q = _IDENTITY_T.copy(), _IDENTITY_Q.copy()
             linear, angular = np.zeros(3), np.zeros(3)
             twist_var = np.full(6, UNKNOWN_VARIANCE)
+        t, q = xyz, frame_q
+        if self.fusion is not None:
+            t, q = self.fusion.update(xyz, frame_q, rel_t, rel_q, continued=reason is None)
         return LocalizerResult(
             stamp=stamp,
-            t=xyz,
+            t=t,
             q=q,
             rel_t=rel_t,
             rel_q=rel_q,
@@ -343,8 +355,10 @@ class Localizer:
             mask=None,
             reset_reason=reason,
             seconds=0.0,
-            network_t=xyz,
+            network_t=t,
             network_q=q,
+            frame_t=xyz,
+            frame_q=frame_q,
         )
 
     def _reset_reason(self, stamp: float, shape: tuple[int, int], intrinsics: Intrinsics) -> str | None:

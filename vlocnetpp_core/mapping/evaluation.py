@@ -139,16 +139,26 @@ def add_structure_baseline(
 ) -> dict:
     """Score the structure-based baseline's ``poses`` (per sequence) on the frames of ``results`` as
     ``report["structure_baseline"]``."""
-    scored = evaluate_sequences(with_poses(results, poses), thresholds, [1.0])
     report["structure_baseline"] = {
         "name": STRUCTURE_NAME,
         "method": STRUCTURE_METHOD,
         "map": map_source,
         "map_keyframes": keyframes,
+        **scored_poses(results, poses, thresholds),
+    }
+    return report
+
+
+def scored_poses(
+    results: Sequence, poses: Sequence[tuple[np.ndarray, np.ndarray]], thresholds=DEFAULT_THRESHOLDS
+) -> dict:
+    """The pose metrics of ``poses[k] = (t (N_k, 3), q (N_k, 4))`` on the frames of ``results[k]``: ``overall`` and
+    ``per_sequence``, each ``{"pose": ...}``."""
+    scored = evaluate_sequences(with_poses(results, poses), thresholds, [1.0])
+    return {
         "overall": {"pose": scored["overall"]["pose"]},
         "per_sequence": {name: {"pose": part["pose"]} for name, part in scored["per_sequence"].items()},
     }
-    return report
 
 
 def refinement_lines(report: dict) -> list[str]:
