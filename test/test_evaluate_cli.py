@@ -55,7 +55,8 @@ def test_evaluate_writes_report_trajectories_and_plots(evaluated, capsys):
     assert any(line.startswith("overall") for line in stdout.splitlines())
 
     report = json.loads((out / "metrics.json").read_text())
-    assert list(report) == ["overall", "per_sequence", "baseline", "meta"]
+    assert list(report) == ["overall", "per_sequence", "frame_network", "baseline", "meta"]
+    assert list(report["frame_network"]["per_sequence"]) == ["seq-00"]  # each frame alone, beside the fused pose
     assert report["meta"] == {
         "checkpoint": str(tmp / "ckpt" / "lite"),
         "data": str(tmp / "data"),
@@ -65,6 +66,7 @@ def test_evaluate_writes_report_trajectories_and_plots(evaluated, capsys):
     }  # the sidecar does not say how it was trained
     assert "note:" not in stdout
     assert any(line.split()[:2] == ["retrieval", str(FRAMES)] for line in stdout.splitlines())
+    assert any(line.startswith("network, each frame alone") for line in stdout.splitlines())
     assert list(report["per_sequence"]) == ["seq-00"]
     for part in (report["overall"], report["per_sequence"]["seq-00"]):
         assert list(part) == ["pose", "odometry", "segmentation", "timing"]

@@ -67,8 +67,8 @@ def test_streaming_reuses_cached_features_and_equals_recomputing(localizer: Loca
     assert len(trunk_calls) == 3  # one trunk pass per frame: the previous frame is never recomputed
     clip = _clip(localizer, frames)
     for k, (r, o) in enumerate(zip(results, clip, strict=True)):
-        np.testing.assert_allclose(r.t, o.xyz[0].double().numpy(), atol=1e-5)
-        np.testing.assert_allclose(r.q, geometry.quat_normalize(o.quat[0].double().numpy()), atol=1e-5)
+        np.testing.assert_allclose(r.frame_t, o.xyz[0].double().numpy(), atol=1e-5)
+        np.testing.assert_allclose(r.frame_q, geometry.quat_normalize(o.quat[0].double().numpy()), atol=1e-5)
         ids = o.seg_logits[0].argmax(0).to(torch.uint8).numpy()
         assert r.mask.shape == (H, W) and r.mask.dtype == np.uint8
         assert np.array_equal(r.mask, cv2.resize(ids, (W, H), interpolation=cv2.INTER_NEAREST_EXACT))
@@ -77,11 +77,11 @@ def test_streaming_reuses_cached_features_and_equals_recomputing(localizer: Loca
             np.testing.assert_allclose(r.rel_q, geometry.quat_normalize(o.rel_quat[0].double().numpy()), atol=1e-5)
     # "recompute both frames from scratch": a fresh pair gives the second frame of the stream
     pair = _clip(localizer, frames[:2])
-    np.testing.assert_allclose(results[1].t, pair[1].xyz[0].double().numpy(), atol=1e-5)
+    np.testing.assert_allclose(results[1].frame_t, pair[1].xyz[0].double().numpy(), atol=1e-5)
     np.testing.assert_allclose(results[1].rel_t, pair[1].rel_xyz[0].double().numpy(), atol=1e-5)
     # and the cached state matters: frame 1 alone (as a first frame) gives another pose
     alone = _clip(localizer, frames[1:2])[0]
-    assert not np.allclose(results[1].t, alone.xyz[0].double().numpy(), atol=1e-6)
+    assert not np.allclose(results[1].frame_t, alone.xyz[0].double().numpy(), atol=1e-6)
 
 
 def test_odometry_accumulates_relative_poses_and_twist_is_motion_over_dt(localizer: Localizer):
@@ -191,7 +191,7 @@ def test_given_depth_replaces_the_prediction_for_warping(localizer: Localizer):
         localizer.step(f, "rgb8", 0.05 * k, depth=d) for k, (f, d) in enumerate(zip(frames, depths, strict=True))
     ]
     clip = _clip(localizer, frames, depths=depths)
-    np.testing.assert_allclose(with_depth[1].t, clip[1].xyz[0].double().numpy(), atol=1e-5)
+    np.testing.assert_allclose(with_depth[1].frame_t, clip[1].xyz[0].double().numpy(), atol=1e-5)
     localizer.reset()
     predicted = [localizer.step(f, "rgb8", 1.0 + 0.05 * k) for k, f in enumerate(frames)]
     assert not np.allclose(with_depth[1].t, predicted[1].t, atol=1e-7)  # the warp (and so the fused pose) changed

@@ -295,17 +295,19 @@ class Localizer:
         if ids is not None and ids.shape != shape:
             ids = cv2.resize(ids, (shape[1], shape[0]), interpolation=cv2.INTER_NEAREST_EXACT)
         result.mask = ids
-        if self.refinement is not None:
+        if self.refinement is not None:  # refined from the frame's own pose; where it falls back, the fused one stays
             p = self.refinement.finish(
-                step.features, result.t, result.q, result.rel_t, result.rel_q, result.reset_reason is None, ids
+                step.features,
+                result.frame_t,
+                result.frame_q,
+                result.rel_t,
+                result.rel_q,
+                result.reset_reason is None,
+                ids,
             )
-            result.t, result.q, result.source, result.refine_status, result.inliers = (
-                p.t,
-                p.q,
-                p.source,
-                p.status,
-                p.inliers,
-            )
+            if p.source != "network":
+                result.t, result.q = p.t, p.q
+            result.source, result.refine_status, result.inliers = p.source, p.status, p.inliers
             if p.covariance is not None:
                 result.pose_covariance = p.covariance + np.diag(np.full(6, MIN_VARIANCE))
         result.seconds = time.perf_counter() - step.started
