@@ -177,7 +177,8 @@ def run_localizer(
                 if structure is not None:
                     located.append(structure.locate_image(frame.image, frame.intrinsics, described[-1])[:2])
                 track.add(out)
-                single.append((out.frame_t, out.frame_q))
+                if run.frame_poses is not None:
+                    single.append((out.frame_t, out.frame_q))
                 recorder.add(
                     frame.stamp,
                     frame.t,
@@ -202,12 +203,18 @@ def run_localizer(
                 if run.tracks is not None:
                     run.tracks.append(track)
                 if structure is not None:
-                    run.structure.append(tuple(np.array(v) for v in zip(*located, strict=True)))
+                    run.structure.append(_stacked(located))
                 if run.frame_poses is not None:
-                    run.frame_poses.append(tuple(np.array(v) for v in zip(*single, strict=True)))
+                    run.frame_poses.append(_stacked(single))
     finally:
         bar.close()
     return run
+
+
+def _stacked(poses: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
+    """Per-frame ``(t (3,), q (4,))`` pairs as ``(t (N, 3), q (N, 4))``."""
+    t, q = zip(*poses, strict=True)
+    return np.array(t), np.array(q)
 
 
 def run(args: argparse.Namespace) -> int:
