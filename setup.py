@@ -38,6 +38,7 @@ setup(
         "vlocnetpp.programs": [
             "replay-node = vlocnetpp_ros.replay_bridge:main",
             "latency-bench = vlocnetpp_ros.latency_bench:main",
+            "soak = vlocnetpp_ros.soak:main",
         ],
     },
 )

@@ -34,7 +34,10 @@ FIGURES = (
     "synth_fps",
     "train_nchw_over_nhwc",
     "peak_rss_mb",
+    "soak_answered_share",
+    "soak_latency_p99_ms",
 )
+SOAK_MINUTES = 0.3  # the soak's figures and files; its 10-minute run is a benchmark (docs/performance.md)
 
 
 def _map_of_the_bench_frames(folder):
@@ -59,6 +62,7 @@ def report(tmp_path_factory) -> dict:
     campus_map = _map_of_the_bench_frames(folder)
     (folder / "bench.yaml").write_text(
         f"threads: 1\nnode_repetitions: 4\nconverter_frames: 12\nrefinement_map: {campus_map}\n"
+        f"soak_minutes: {SOAK_MINUTES}\nsoak_out: {folder / 'soak'}\n"
     )
     mp = pytest.MonkeyPatch()
     mp.setenv("ROS_DOMAIN_ID", str(30 + os.getpid() % 60))  # the node and its probe on a domain of their own
@@ -159,6 +163,20 @@ def test_quick_run_says_what_it_measured(report):
     for name in TARGETS:
         assert name in table
     assert "load average" in table and "note: quick" in table
+
+
+def test_soak_figures_come_from_the_soak_files(report):
+    """The node fed at 15 Hz with depth and bad messages for SOAK_MINUTES: the figures are those of its soak.json,
+    and its table and plot are written."""
+    soak = report["soak"]
+    raw = json.loads((Path(soak["plot"]).parent / "soak.json").read_text())
+    assert raw["good_frames_sent"] == soak["good_frames_sent"] >= 0.5 * 15 * 60 * SOAK_MINUTES
+    assert 0 < soak["answered"] == raw["answered"] <= soak["good_frames_sent"] and soak["bad_messages_sent"] > 0
+    assert report["soak_answered_share"] == pytest.approx(soak["answered"] / soak["good_frames_sent"])
+    assert report["soak_latency_p99_ms"] == raw["latency_ms_p99"] >= raw["latency_ms_p50"] > 0
+    assert report["soak_rss_growth_mb"] >= 0 and Path(soak["plot"]).stat().st_size > 0
+    assert (Path(soak["plot"]).parent / "soak.md").read_text().startswith("| figure | value |")
+    assert f"{soak['answered']} of {soak['good_frames_sent']} good frames answered" in format_table(report)
 
 
 def test_resnet50_is_the_standard_one():

@@ -9,6 +9,8 @@ import sys
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
+import pytest
+
 from conftest import REPO
 
 from vlocnetpp_ros import dds_profile
@@ -33,6 +35,30 @@ def test_without_a_user_profile_readers_are_dynamic_and_the_environment_is_resto
     assert env == {} and not path.exists()
 
 
+def test_the_default_transports_get_a_large_shared_memory_segment(tmp_path: Path):
+    """Fast DDS's two default transports, the shared-memory one with SHM_SEGMENT_BYTES, unless the environment
+    chooses the builtin transports."""
+    env: dict[str, str] = {}
+    applied = dds_profile.apply(env, tmp_path)
+    path = Path(env[dds_profile.PROFILES_ENV])
+    assert _texts(path, "profiles/participant/rtps/userTransports/transport_id") == list(dds_profile.TRANSPORT_IDS)
+    assert _texts(path, "profiles/participant/rtps/useBuiltinTransports") == ["false"]
+    assert _texts(path, "profiles/transport_descriptors/transport_descriptor/type") == ["SHM", "UDPv4"]
+    assert _texts(path, "profiles/transport_descriptors/transport_descriptor/segment_size") == [
+        str(dds_profile.SHM_SEGMENT_BYTES)
+    ]
+    assert "shared-memory segment 8 MiB" in applied.message
+    applied.restore()
+    env = {dds_profile.BUILTIN_TRANSPORTS_ENV: "UDPv4"}
+    applied = dds_profile.apply(env, tmp_path)
+    path = Path(env[dds_profile.PROFILES_ENV])
+    assert _texts(path, "profiles/participant/rtps/userTransports") == [] and _texts(
+        path, "profiles/transport_descriptors"
+    ) == []
+    assert "shared-memory segment" not in applied.message
+    applied.restore()
+
+
 def test_the_users_files_are_merged_and_their_values_kept(tmp_path: Path):
     (tmp_path / dds_profile.CWD_FILE).write_text(
         '<profiles xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">'
@@ -47,10 +73,9 @@ def test_the_users_files_are_merged_and_their_values_kept(tmp_path: Path):
         "PREALLOCATED_WITH_REALLOC"
     ]  # the user's choice
     assert _texts(path, "profiles/data_writer/qos/publishMode/kind") == ["ASYNCHRONOUS"]
-    assert (
-        str(LARGE_DATA) in applied.message
-        and "kept the user's data_reader /camera/image: historyMemoryPolicy" in applied.message
-    )
+    assert str(LARGE_DATA) in applied.message and "shared-memory segment" not in applied.message
+    assert "participant vlocnetpp_large_data: transports" in applied.message
+    assert "data_reader /camera/image: historyMemoryPolicy PREALLOCATED_WITH_REALLOC" in applied.message
     applied.restore()
     assert env == {dds_profile.PROFILES_ENV: str(LARGE_DATA), "RMW_FASTRTPS_PUBLICATION_MODE": "ASYNCHRONOUS"}
 
@@ -69,9 +94,11 @@ def test_nothing_is_changed_when_the_user_configures_fast_dds_or_another_rmw_run
     assert "cannot merge" in applied.message and str(bad) in applied.message
 
 
-def test_fast_dds_loads_the_merged_profile_without_an_error(tmp_path: Path):
-    """A real participant from the merged large-data profile: Fast DDS's XML parser reports no error, and a message
-    goes from a publisher to a subscription of the same node."""
+@pytest.mark.parametrize("user_profile", [LARGE_DATA, None], ids=["large_data", "no_user_profile"])
+def test_fast_dds_loads_the_merged_profile_without_an_error(tmp_path: Path, user_profile: Path | None):
+    """A real participant from the merged profile (with the large-data profile, and alone with its own transports):
+    Fast DDS's XML parser reports no error, and a message goes from a publisher to a subscription of the same
+    node."""
     code = """
 import sys, time
 from vlocnetpp_ros import dds_profile
@@ -98,11 +125,13 @@ print(applied.message, len(got) > 0)
     env.update(
         {
             "PYTHONPATH": str(REPO),
-            dds_profile.PROFILES_ENV: str(LARGE_DATA),
             "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
             "ROS_DOMAIN_ID": str(150 + os.getpid() % 40),
         }
     )
+    env.pop(dds_profile.PROFILES_ENV, None)
+    if user_profile is not None:
+        env[dds_profile.PROFILES_ENV] = str(user_profile)
     proc = subprocess.run(
         [sys.executable, "-c", code], env=env, cwd=tmp_path, capture_output=True, text=True, timeout=60
     )

@@ -7,10 +7,11 @@ the demo, the node latency figure of ``bench``) it starts a program that the ROS
 =================  ===================================================================
 ``replay-node``    replay a bag through a ``localizer`` node over DDS (``replay``'s flags)
 ``latency-bench``  image-in -> pose-out latency of the node against the bare Localizer
+``soak``           the node at camera rate for minutes, good and bad frames (``bench``'s soak figures)
 =================  ===================================================================
 
-The same programs are console scripts (``vlocnetpp-replay-node``, ``vlocnetpp-latency-bench``) for
-running by hand.
+The same programs are console scripts (``vlocnetpp-replay-node``, ``vlocnetpp-latency-bench``,
+``vlocnetpp-soak``) for running by hand.
 """
 
 from __future__ import annotations

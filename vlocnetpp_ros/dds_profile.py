@@ -18,7 +18,16 @@ directory, which Fast DDS would load too) with what rmw would otherwise have for
 where the user set nothing: readers ``DYNAMIC`` (the one change), writers
 ``PREALLOCATED_WITH_REALLOC`` with the publication mode of ``RMW_FASTRTPS_PUBLICATION_MODE``
 (default ``SYNCHRONOUS``), data sharing off, discovery histories ``PREALLOCATED_WITH_REALLOC``.
-A value the user set is kept, and named in the log line. Nothing is done when
+A value the user set is kept, and named in the log line.
+
+It also gives the participant the default transports (shared memory, UDPv4) with a shared-memory segment of
+:data:`SHM_SEGMENT_BYTES` instead of Fast DDS's 512 KiB, where neither the user's profile nor
+``FASTDDS_BUILTIN_TRANSPORTS`` chooses transports. The segment is the *sender's*: a publisher of messages larger
+than 512 KiB (a 640x480 depth or colour image) with the default one delivers them with up to ~0.5 s of jitter to
+a subscriber in another process (docs/node.md, "Camera transport"); with this one within a few milliseconds. The
+locators are those of the default transports, so every default participant still talks to one with this profile.
+The project's programs that publish camera frames (the node's segmentation; the soak, replay and latency tools,
+:class:`vlocnetpp_ros.dds_client.DdsClient`) apply it; a camera driver takes ``config/fastdds_camera.xml``. Nothing is done when
 ``RMW_FASTRTPS_USE_QOS_FROM_XML`` is already set (the user configures Fast DDS: ``0`` switches
 this off), when another RMW is chosen, or when a user profile cannot be parsed (said so: their
 file is then used as it is).
@@ -40,6 +49,11 @@ CWD_FILE = "DEFAULT_FASTRTPS_PROFILES.xml"
 NAMESPACE = "http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles"
 READER_POLICY = "DYNAMIC"
 REALLOC = "PREALLOCATED_WITH_REALLOC"
+BUILTIN_TRANSPORTS_ENV = "FASTDDS_BUILTIN_TRANSPORTS"
+SHM_SEGMENT_BYTES = 8 * 1024 * 1024  # a few 640x480 or one 1280x720 colour + depth pair in flight
+SHM_MAX_MESSAGE_BYTES = 4 * 1024 * 1024  # one 1280x720 32FC1 depth image (3.7 MB) unfragmented
+TRANSPORT_IDS = ("vlocnetpp_shm", "vlocnetpp_udpv4")
+_TRANSPORT_TAGS = ("userTransports", "builtinTransports", "useBuiltinTransports")
 
 
 @dataclass
@@ -101,9 +115,40 @@ def user_files(environ: MutableMapping[str, str], cwd: Path) -> list[Path]:
     return files
 
 
-def merged_profiles(files: list[Path], publication_mode: str | None) -> tuple[ET.ElementTree, list[str]]:
-    """One ``<dds>`` document with the profiles of ``files`` and rmw's settings filled in (readers ``DYNAMIC``);
-    also what the user set that differs from the node's choice. Raises ``OSError`` / ``ET.ParseError``."""
+def _add_transports(profiles: ET.Element, participant: ET.Element) -> None:
+    """Shared memory with a :data:`SHM_SEGMENT_BYTES` segment, and UDPv4, as ``participant``'s only transports."""
+    descriptors = profiles.find("transport_descriptors")
+    if descriptors is None:  # first: Fast DDS resolves a participant's transport ids as it parses it
+        descriptors = ET.Element("transport_descriptors")
+        profiles.insert(0, descriptors)
+    known = {e.findtext("transport_id") for e in descriptors.findall("transport_descriptor")}
+    shm, udp = TRANSPORT_IDS
+    if shm not in known:
+        shm_descriptor = ET.SubElement(descriptors, "transport_descriptor")
+        for tag, text in (
+            ("transport_id", shm),
+            ("type", "SHM"),
+            ("segment_size", str(SHM_SEGMENT_BYTES)),
+            ("maxMessageSize", str(SHM_MAX_MESSAGE_BYTES)),
+        ):
+            ET.SubElement(shm_descriptor, tag).text = text
+    if udp not in known:
+        udp_descriptor = ET.SubElement(descriptors, "transport_descriptor")
+        ET.SubElement(udp_descriptor, "transport_id").text = udp
+        ET.SubElement(udp_descriptor, "type").text = "UDPv4"
+    rtps = _child(participant, "rtps")
+    users = ET.SubElement(rtps, "userTransports")
+    for transport_id in TRANSPORT_IDS:
+        ET.SubElement(users, "transport_id").text = transport_id
+    ET.SubElement(rtps, "useBuiltinTransports").text = "false"
+
+
+def merged_profiles(
+    files: list[Path], publication_mode: str | None, transports: bool = True
+) -> tuple[ET.ElementTree, list[str]]:
+    """One ``<dds>`` document with the profiles of ``files`` and rmw's settings filled in (readers ``DYNAMIC``;
+    with ``transports``, the large shared-memory segment for participants whose transports the user did not
+    choose); also what the user set that differs from the node's choice. Raises ``OSError`` / ``ET.ParseError``."""
     root = ET.Element("dds", {"xmlns": NAMESPACE})
     for path in files:
         top = ET.parse(path).getroot()
@@ -128,6 +173,11 @@ def merged_profiles(files: list[Path], publication_mode: str | None) -> tuple[ET
             if kind == "participant":
                 for policy in ("readerHistoryMemoryPolicy", "writerHistoryMemoryPolicy"):
                     _fill(element, ("rtps", "builtin", policy), REALLOC, kept, f"{label} {policy}")
+                if not any(element.find(f"rtps/{tag}") is not None for tag in _TRANSPORT_TAGS):
+                    if transports:
+                        _add_transports(profiles, element)
+                elif element.get("profile_name") != name:
+                    kept.append(f"{label} transports")
                 continue
             policy = READER_POLICY if kind == "data_reader" else REALLOC
             _fill(element, ("historyMemoryPolicy",), policy, kept, f"{label} historyMemoryPolicy")
@@ -152,7 +202,9 @@ def apply(environ: MutableMapping[str, str] | None = None, cwd: Path | None = No
         )
     files = user_files(environ, cwd)
     try:
-        tree, kept = merged_profiles(files, environ.get("RMW_FASTRTPS_PUBLICATION_MODE"))
+        tree, kept = merged_profiles(
+            files, environ.get("RMW_FASTRTPS_PUBLICATION_MODE"), transports=not environ.get(BUILTIN_TRANSPORTS_ENV)
+        )
     except (OSError, ET.ParseError) as err:
         return Applied(
             f"cannot merge the Fast DDS profile {', '.join(map(str, files))} ({err}): used as it is, "
@@ -164,10 +216,16 @@ def apply(environ: MutableMapping[str, str] | None = None, cwd: Path | None = No
     saved = {key: environ.get(key) for key in (PROFILES_ENV, USE_XML_ENV, SKIP_CWD_ENV)}
     environ.update({PROFILES_ENV: name, USE_XML_ENV: "1", SKIP_CWD_ENV: "1"})
     merged = f", merged with {', '.join(map(str, files))}" if files else ""
+    segment = (
+        f", shared-memory segment {SHM_SEGMENT_BYTES >> 20} MiB (large messages sent without delay)"
+        if tree.getroot().find(f"profiles/transport_descriptors/transport_descriptor[transport_id='{TRANSPORT_IDS[0]}']")
+        is not None
+        else ""
+    )
     kept_text = f"; kept the user's {'; '.join(kept)}" if kept else ""
     return Applied(
         f"Fast DDS: DataReaders use the {READER_POLICY} history memory policy (memory bounded under bursts from "
-        f"deeper publishers){merged}{kept_text}",
+        f"deeper publishers){segment}{merged}{kept_text}",
         True,
         Path(name),
         saved,

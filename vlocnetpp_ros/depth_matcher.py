@@ -52,15 +52,19 @@ class DepthMatcher:
             self._arrived.notify_all()
 
     def matching(self, stamp) -> np.ndarray | None:
-        """Depth ``(H, W) float32`` metres with exactly this stamp, waiting up to ``DEPTH_WAIT_S`` for it; None: use
-        the predicted depth (also when the depth image with this stamp was refused on arrival: counted then)."""
+        """Depth ``(H, W) float32`` metres with exactly this stamp, waiting up to ``DEPTH_WAIT_S`` for it (not once
+        the newest depth image is later than ``stamp``: it will not come); None: use the predicted depth (also when
+        the depth image with this stamp was refused on arrival: counted then)."""
         key = stamp_key(stamp)
 
         def find():
             return next((entry for entry in reversed(self._depths) if entry[0] == key), None)
 
+        def settled() -> bool:  # ours is here, or a later one is (a camera sends its depth images in stamp order)
+            return bool(self._depths) and (self._depths[-1][0] > key or find() is not None)
+
         with self._arrived:
-            self._arrived.wait_for(lambda: find() is not None, DEPTH_WAIT_S)
+            self._arrived.wait_for(settled, DEPTH_WAIT_S)
             entry = find()
         if entry is None:
             self._ignore(

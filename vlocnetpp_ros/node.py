@@ -43,7 +43,8 @@ Once a second, after the diagnostics, the heap pages freed since are handed back
 of large messages instead of staying at their high-water mark; the diagnostics say how much that is
 (``heap_in_use_mb``). The ``localizer`` program gives its Fast DDS
 readers the ``DYNAMIC`` history memory policy (:mod:`vlocnetpp_ros.dds_profile`), so the transport's
-buffers stay bounded too, whatever the history depth of the publishers.
+buffers stay bounded too, whatever the history depth of the publishers, and its shared-memory transport an 8 MiB
+segment, so that its large messages (segmentation) are not delayed (a camera needs the same: docs/node.md).
 """
 
 from __future__ import annotations

@@ -7,7 +7,9 @@ its depth image (stamps advance at the camera rate) or, with probability ``bad_f
 malformed message of a class of :mod:`vlocnetpp_ros.storm` on the image, depth or camera info
 topic. It records when each good frame's ``PoseStamped`` comes back (latency: publish call to pose
 callback, both in this process), samples the node's resident memory (``VmRSS``) every
-``sample_s`` seconds, and reads the node's last ``/diagnostics``.
+``sample_s`` seconds, and reads the node's last ``/diagnostics``. The feeder publishes with the project's Fast DDS
+profile (:class:`vlocnetpp_ros.dds_client.DdsClient`: an 8 MiB shared-memory segment, as a camera driver should
+have for 640x480 images, docs/node.md "Camera transport").
 
 Writes into ``--out``: ``soak.json`` (every figure and sample), ``soak.md`` (the table, also
 printed) and ``soak.png`` (RSS and latency over time). A good frame without an answer was dropped

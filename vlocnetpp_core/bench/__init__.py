@@ -18,6 +18,10 @@ Figures (each with its target; ratios are measured interleaved, see :mod:`.timin
                                              goal, docs/performance.md)
 ``node_refined_hz``                 >= 15    shipped lite model + its keyframe map, refining every frame: poses/s
                                              the node publishes when the camera sends 30 frames/s
+``soak_answered_share``             >= 0.99  with ``soak_minutes`` > 0: good frames answered by the node fed at 15 Hz
+                                             (640x480 + depth, 20 % malformed messages) for that long
+``soak_latency_p99_ms``             <= 100   the same soak: publish -> pose latency, 99th percentile (ms)
+``soak_rss_growth_mb``              <= 20    the same soak: node RSS growth after the first minute (MiB)
 =================================== ======== =========================================================
 
 The refinement's cost per frame (``Localizer.step`` with and without the map, every frame and every second frame,
@@ -73,7 +77,15 @@ TARGETS: dict[str, tuple[str, float | None, str]] = {
         15.0,
         "shipped lite + keyframe map, refining every frame: poses/s through the node, camera at 30 frames/s",
     ),
+    "soak_answered_share": (">=", 0.99, "soak (15 Hz, 640x480 + depth, 20 % bad): good frames answered"),
+    "soak_latency_p99_ms": ("<=", 100.0, "soak: publish -> pose latency p99 (ms)"),
+    "soak_rss_growth_mb": ("<=", 20.0, "soak: node RSS growth after the first minute (MiB)"),
 }
+SOAK_FIGURES = {
+    "soak_answered_share": "answered_share",
+    "soak_latency_p99_ms": "latency_ms_p99",
+    "soak_rss_growth_mb": "rss_mb_growth",
+}  # figure -> key of figures.soak's result
 GPU_PAPER_STEP_MS = 5.0
 NOT_TIMES = (
     "node_peak_rss_mb",
@@ -193,6 +205,13 @@ def run_bench(settings: BenchSettings, device: str = "cpu", quick: bool = False,
                     work, settings.converter_frames, settings.synth_size, settings.repetitions, settings.warmup
                 )
             )
+    if settings.soak_minutes > 0:
+        say(f"soak: the node at 15 Hz with depth for {settings.soak_minutes:g} min -> {settings.soak_out}")
+        try:
+            require("rclpy", "the soak (ROS 2 Jazzy)")
+            report["soak"] = figures.soak(settings.soak_minutes, Path(settings.soak_out), settings.threads)
+        except UserError as err:
+            report["notes"].append(f"soak not measured: {err}")
     report["machine"]["load_average_end"] = figures.cpu_load()
     _add_figures(report, times, device)
     return report
@@ -252,6 +271,7 @@ def _add_figures(report: dict, times: dict, device: str) -> None:
         "peak_rss_mb": times.get("node_peak_rss_mb"),
         "paper_step_ms": 1000.0 * paper_steps[paper_best],
         "node_refined_hz": 1.0 / times["node_refined_stream_every1"] if "node_refined_stream_every1" in times else None,
+        **{name: report.get("soak", {}).get(key) for name, key in SOAK_FIGURES.items()},
     }
     report.update(values)
     if converter:

@@ -185,6 +185,35 @@ def node_latency(
     }
 
 
+def soak(minutes: float, out: Path, threads: int) -> dict:
+    """Run the ``soak`` ROS program (the shipped lite model through the real node at 15 Hz, 640x480 colour + depth,
+    20 % malformed messages; docs/node.md, "Soak benchmark") for ``minutes``; its files go to ``out``. Returns the share
+    of good frames answered, latency p50 / p99 (ms), the node's RSS after the first minute and its growth after it
+    (MiB: highest later sample minus that), and the counts."""
+    argv = [*program_command("soak"), "--minutes", str(minutes), "--num-threads", str(threads), "--out", str(out)]
+    try:
+        proc = subprocess.run(argv, capture_output=True, text=True, timeout=60 * minutes + 300, stdin=subprocess.DEVNULL)
+    except subprocess.TimeoutExpired:
+        raise UserError(f"the soak did not finish within {minutes:g} min + 5 min") from None
+    if proc.returncode != 0:
+        tail = "\n".join((proc.stderr or proc.stdout).strip().splitlines()[-8:])
+        raise UserError(f"the soak failed (exit code {proc.returncode}):\n{tail}")
+    raw = json.loads((out / "soak.json").read_text())
+    warm = [s["rss_mb"] for s in raw["samples"] if s["t_s"] >= raw["settings"]["warmup_s"]] or [raw["rss_mb_end"]]
+    return {
+        "answered_share": raw["answered"] / max(raw["good_frames_sent"], 1),
+        "good_frames_sent": raw["good_frames_sent"],
+        "answered": raw["answered"],
+        "bad_messages_sent": raw["bad_messages_sent"],
+        "latency_ms_p50": raw["latency_ms_p50"],
+        "latency_ms_p99": raw["latency_ms_p99"],
+        "rss_mb_start": raw["rss_mb_start"],
+        "rss_mb_growth": max(warm) - raw["rss_mb_start"],
+        "minutes": minutes,
+        "plot": str(out / "soak.png"),
+    }
+
+
 def converter(workdir: Path, frames: int, size: tuple[int, int], repetitions: int, warmup: int) -> dict:
     """``vlocnetpp convert`` (raw ``rgb8``) of a rendered DeepLoc-layout test loop vs decoding the same PNG
     files alone (``cv2.imread`` of every colour and label image the converter reads, one thread).

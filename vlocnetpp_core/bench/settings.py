@@ -8,6 +8,8 @@ from dataclasses import dataclass
 
 from vlocnetpp_core.errors import DataError
 
+ZERO_ALLOWED = ("threads", "warmup")  # whole-number settings that may be 0
+
 
 @dataclass
 class BenchSettings:
@@ -33,6 +35,8 @@ class BenchSettings:
     synth_frames: int = 20
     synth_size: tuple[int, int] = (320, 180)
     scene: str = "campus"
+    soak_minutes: float = 0.0  # > 0: the soak figures (the node at 15 Hz with depth, :func:`.figures.soak`); 10 in docs
+    soak_out: str = "bench_soak"  # where the soak writes soak.md, soak.json and soak.png
 
     @classmethod
     def quick(cls) -> BenchSettings:
@@ -67,15 +71,19 @@ class BenchSettings:
             elif isinstance(default, bool):
                 if not isinstance(value, bool):
                     raise DataError(source, f"{name} must be true or false, got {value!r}")
+            elif isinstance(default, float):
+                if not isinstance(value, (int, float)) or isinstance(value, bool) or not 0 <= value < 1e6:
+                    raise DataError(source, f"{name} must be a number >= 0, got {value!r}")
+                value = float(value)
             elif isinstance(default, int):
                 if (
                     not isinstance(value, int)
                     or isinstance(value, bool)
-                    or value < (0 if name in ("threads", "warmup") else 1)
+                    or value < (0 if name in ZERO_ALLOWED else 1)
                 ):
                     raise DataError(
                         source,
-                        f"{name} must be a whole number >= {0 if name in ('threads', 'warmup') else 1}, got {value!r}",
+                        f"{name} must be a whole number >= {0 if name in ZERO_ALLOWED else 1}, got {value!r}",
                     )
             elif not isinstance(value, str):
                 raise DataError(source, f"{name} must be a string, got {value!r}")

@@ -40,6 +40,7 @@ def format_table(report: dict) -> str:
         "peak_rss_mb": f"now {report['node_rss_mb']:.0f} MiB" if "node_rss_mb" in report else "not measured",
         "paper_step_ms": f"{report['machine']['device']}",
         "node_refined_hz": _refinement_basis(report),
+        **dict.fromkeys(("soak_answered_share", "soak_latency_p99_ms", "soak_rss_growth_mb"), _soak_basis(report)),
     }
     rows = [("figure", "value", "target", "met", "absolute")]
     for name, entry in report["targets"].items():
@@ -78,3 +79,15 @@ def _refinement_basis(report: dict) -> str:
             f"{1000 / t['node_refined_stream_every2']:.1f} Hz (lockstep {1000 / t['node_refined_latency_every2']:.1f})"
         )
     return text
+
+
+def _soak_basis(report: dict) -> str:
+    """The soak's counts, latency median, RSS and plot (or why it did not run)."""
+    soak = report.get("soak")
+    if soak is None:
+        return "not run (bench setting soak_minutes: 0)" if not report["settings"]["soak_minutes"] else "not measured"
+    return (
+        f"{soak['minutes']:g} min: {soak['answered']} of {soak['good_frames_sent']} good frames answered, "
+        f"{soak['bad_messages_sent']} bad messages; p50 {soak['latency_ms_p50']:.0f} ms; "
+        f"RSS {soak['rss_mb_start']:.0f} MiB after 1 min; plot {soak['plot']}"
+    )
