@@ -10,7 +10,6 @@ import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import pytest
-
 from conftest import REPO
 
 from vlocnetpp_ros import dds_profile
@@ -52,9 +51,10 @@ def test_the_default_transports_get_a_large_shared_memory_segment(tmp_path: Path
     env = {dds_profile.BUILTIN_TRANSPORTS_ENV: "UDPv4"}
     applied = dds_profile.apply(env, tmp_path)
     path = Path(env[dds_profile.PROFILES_ENV])
-    assert _texts(path, "profiles/participant/rtps/userTransports") == [] and _texts(
-        path, "profiles/transport_descriptors"
-    ) == []
+    assert (
+        _texts(path, "profiles/participant/rtps/userTransports") == []
+        and _texts(path, "profiles/transport_descriptors") == []
+    )
     assert "shared-memory segment" not in applied.message
     applied.restore()
 

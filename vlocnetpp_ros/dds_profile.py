@@ -27,8 +27,9 @@ than 512 KiB (a 640x480 depth or colour image) with the default one delivers the
 a subscriber in another process (docs/node.md, "Camera transport"); with this one within a few milliseconds. The
 locators are those of the default transports, so every default participant still talks to one with this profile.
 The project's programs that publish camera frames (the node's segmentation; the soak, replay and latency tools,
-:class:`vlocnetpp_ros.dds_client.DdsClient`) apply it; a camera driver takes ``config/fastdds_camera.xml``. Nothing is done when
-``RMW_FASTRTPS_USE_QOS_FROM_XML`` is already set (the user configures Fast DDS: ``0`` switches
+:class:`vlocnetpp_ros.dds_client.DdsClient`) apply it; a camera driver takes ``config/fastdds_camera.xml``.
+
+Nothing is done when ``RMW_FASTRTPS_USE_QOS_FROM_XML`` is already set (the user configures Fast DDS: ``0`` switches
 this off), when another RMW is chosen, or when a user profile cannot be parsed (said so: their
 file is then used as it is).
 """
@@ -216,10 +217,10 @@ def apply(environ: MutableMapping[str, str] | None = None, cwd: Path | None = No
     saved = {key: environ.get(key) for key in (PROFILES_ENV, USE_XML_ENV, SKIP_CWD_ENV)}
     environ.update({PROFILES_ENV: name, USE_XML_ENV: "1", SKIP_CWD_ENV: "1"})
     merged = f", merged with {', '.join(map(str, files))}" if files else ""
+    ours = f"profiles/transport_descriptors/transport_descriptor[transport_id='{TRANSPORT_IDS[0]}']"
     segment = (
         f", shared-memory segment {SHM_SEGMENT_BYTES >> 20} MiB (large messages sent without delay)"
-        if tree.getroot().find(f"profiles/transport_descriptors/transport_descriptor[transport_id='{TRANSPORT_IDS[0]}']")
-        is not None
+        if tree.getroot().find(ours) is not None
         else ""
     )
     kept_text = f"; kept the user's {'; '.join(kept)}" if kept else ""

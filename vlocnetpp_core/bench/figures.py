@@ -192,7 +192,9 @@ def soak(minutes: float, out: Path, threads: int) -> dict:
     (MiB: highest later sample minus that), and the counts."""
     argv = [*program_command("soak"), "--minutes", str(minutes), "--num-threads", str(threads), "--out", str(out)]
     try:
-        proc = subprocess.run(argv, capture_output=True, text=True, timeout=60 * minutes + 300, stdin=subprocess.DEVNULL)
+        proc = subprocess.run(
+            argv, capture_output=True, text=True, timeout=60 * minutes + 300, stdin=subprocess.DEVNULL
+        )
     except subprocess.TimeoutExpired:
         raise UserError(f"the soak did not finish within {minutes:g} min + 5 min") from None
     if proc.returncode != 0:

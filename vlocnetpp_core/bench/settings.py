@@ -76,11 +76,7 @@ class BenchSettings:
                     raise DataError(source, f"{name} must be a number >= 0, got {value!r}")
                 value = float(value)
             elif isinstance(default, int):
-                if (
-                    not isinstance(value, int)
-                    or isinstance(value, bool)
-                    or value < (0 if name in ZERO_ALLOWED else 1)
-                ):
+                if not isinstance(value, int) or isinstance(value, bool) or value < (0 if name in ZERO_ALLOWED else 1):
                     raise DataError(
                         source,
                         f"{name} must be a whole number >= {0 if name in ZERO_ALLOWED else 1}, got {value!r}",
