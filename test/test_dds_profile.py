@@ -59,6 +59,20 @@ def test_the_default_transports_get_a_large_shared_memory_segment(tmp_path: Path
     applied.restore()
 
 
+def test_the_camera_profile_gives_the_segment_the_node_gives_itself():
+    """config/fastdds_camera.xml (for camera drivers) holds the transports dds_profile gives the node."""
+    path = REPO / "config" / "fastdds_camera.xml"
+    assert _texts(path, "transport_descriptors/transport_descriptor/transport_id") == list(dds_profile.TRANSPORT_IDS)
+    assert _texts(path, "transport_descriptors/transport_descriptor/segment_size") == [
+        str(dds_profile.SHM_SEGMENT_BYTES)
+    ]
+    assert _texts(path, "transport_descriptors/transport_descriptor/maxMessageSize") == [
+        str(dds_profile.SHM_MAX_MESSAGE_BYTES)
+    ]
+    assert _texts(path, "participant/rtps/userTransports/transport_id") == list(dds_profile.TRANSPORT_IDS)
+    assert _texts(path, "participant/rtps/useBuiltinTransports") == ["false"]
+
+
 def test_the_users_files_are_merged_and_their_values_kept(tmp_path: Path):
     (tmp_path / dds_profile.CWD_FILE).write_text(
         '<profiles xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">'

@@ -40,7 +40,7 @@ def format_table(report: dict) -> str:
         "peak_rss_mb": f"now {report['node_rss_mb']:.0f} MiB" if "node_rss_mb" in report else "not measured",
         "paper_step_ms": f"{report['machine']['device']}",
         "node_refined_hz": _refinement_basis(report),
-        **dict.fromkeys(("soak_answered_share", "soak_latency_p99_ms", "soak_rss_growth_mb"), _soak_basis(report)),
+        **dict.fromkeys((name for name in report["targets"] if name.startswith("soak_")), _soak_basis(report)),
     }
     rows = [("figure", "value", "target", "met", "absolute")]
     for name, entry in report["targets"].items():
