@@ -32,7 +32,7 @@ ROOT = Path(__file__).resolve().parents[1]
 # visits; 791569, 835667, 943975, 479491 chose the odometry fusion's constants with 11; the verdicts (docs/results.md):
 # never drawn again, so the next verdict is on other visits
 # fmt: off
-SPENT = {0, 5, 7, 11, 23, 42, 101, 202,
+SPENT = {0, 1, 5, 7, 11, 23, 42, 101, 202,  # 1: the visits of an experiment (2026-12-07, fourth)
          307008, 445811, 936886, 733135, 107868, 370004, 177925, 600629,  # refinement, EPnP (2026-12-20)
          740804, 762581, 939547, 526530, 342913, 570627, 193802, 711590,  # refinement, AP3P (2026-12-06)
          684805, 794529, 695689, 164404, 978398, 877148, 728843, 306382,  # AP3P, inliers again (2026-12-06)
