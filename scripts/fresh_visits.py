@@ -37,7 +37,8 @@ SPENT = {0, 1, 5, 7, 11, 23, 42, 101, 202,  # 1: the visits of an experiment (20
          740804, 762581, 939547, 526530, 342913, 570627, 193802, 711590,  # refinement, AP3P (2026-12-06)
          684805, 794529, 695689, 164404, 978398, 877148, 728843, 306382,  # AP3P, inliers again (2026-12-06)
          791569, 835667, 943975, 479491,  # validation of the odometry fusion's constants (2026-12-07)
-         419167, 913411, 340430, 244380, 161928, 817369, 153345, 526595}  # the fusion's verdict (2026-12-07)
+         419167, 913411, 340430, 244380, 161928, 817369, 153345, 526595,  # the fusion's verdict (2026-12-07)
+         165582, 241377, 62239, 506526, 568621, 838749, 157573, 928725}  # the bias filter's verdict (2026-12-07)
 # fmt: on
 COLUMNS = [
     ("t [m]", "pose", "median_translation_m", 1, "{:.3f}"),
@@ -203,6 +204,12 @@ def main(argv: list[str] | None = None) -> int:
     checkpoints = [c.split("=", 1) if "=" in c else (Path(c).stem, c) for c in args.checkpoint] or [
         ("shipped", "models/vlocnetpp_lite.safetensors")
     ]
+    missing = [
+        path for path in (*(c for _, c in checkpoints), args.map, args.reference) if path and not (ROOT / path).exists()
+    ]
+    if missing:
+        hint = " (the map: 'vlocnetpp map build', README)" if args.map in missing else ""
+        sys.exit(f"fresh_visits: no such file: {', '.join(missing)}{hint}")
     print(
         f"visit seeds: {' '.join(map(str, seeds))} "
         f"({args.test_loops} test loops of {args.frames_per_loop} frames each)",

@@ -1,6 +1,6 @@
 """scripts/fresh_visits.py and scripts/visit_errors.py end to end on two short loops of a tests' visit seed: the
 table's rows (the network fused with its odometry, each frame alone, retrieval), and the error per visit condition
-read back from the trajectories and the scene's conditions."""
+read back from the trajectories and the scene's conditions; a missing input refused before any rendering."""
 
 from __future__ import annotations
 
@@ -41,3 +41,9 @@ def test_fresh_visits_table_and_the_errors_per_visit_condition(tmp_path):
 
     missing = _script("visit_errors.py", str(out), "--label", "other")
     assert missing.returncode == 2 and "no scored visits of label 'other'" in missing.stderr
+
+    no_map = _script(
+        "fresh_visits.py", "--seed", "5", "--map", str(tmp_path / "none.npz"), "--out", str(tmp_path / "x")
+    )
+    assert no_map.returncode == 1 and "no such file" in no_map.stderr and "map build" in no_map.stderr
+    assert not (tmp_path / "x").exists()  # refused before rendering anything
