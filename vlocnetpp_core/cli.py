@@ -44,6 +44,11 @@ COMMANDS: dict[str, tuple[str, str, tuple[str, ...]]] = {
     ),
     "evaluate-bag": ("vlocnetpp_core.bag.evaluate_bag", "score a bag holding ground truth and localizer outputs", ()),
     "bench": ("vlocnetpp_core.bench", "speed and memory benchmarks against the performance targets", ()),
+    "calibrate-classes": (
+        "vlocnetpp_core.inference.class_offsets",
+        "fit a checkpoint's per-class segmentation offsets for mean IoU on labelled validation visits",
+        (),
+    ),
     "export-onnx": ("vlocnetpp_core.inference.onnx_export", "export the streaming step to ONNX", ()),
 }
 

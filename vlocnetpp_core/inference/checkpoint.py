@@ -21,7 +21,9 @@ Sidecar keys (``docs/architecture.md`` "Checkpoint"):
   and the per-frame relative motion error, measured on validation data by ``vlocnetpp train``.
   Missing (or ``null``) entries take the conservative defaults :data:`DEFAULT_POSE_VARIANCE`
   (1 m, 5 deg standard deviation) and :data:`DEFAULT_ODOMETRY_VARIANCE` (10 cm, 1 deg per frame),
-  and the sidecar then says ``"source": "default"``.
+  and the sidecar then says ``"source": "default"``. Optional ``class_logit_offsets``: one offset per class added
+  to the segmentation scores before the argmax (:mod:`vlocnetpp_core.inference.class_offsets`), with
+  ``class_logit_offsets_source``.
 """
 
 from __future__ import annotations
@@ -194,7 +196,31 @@ def read_checkpoint_meta(path: str | Path) -> dict[str, Any]:
             raise DataError(
                 sidecar, f"calibration.{key} must be 6 finite non-negative variances (x, y, z, rx, ry, rz), got {v!r}"
             )
+    offsets = calib.get("class_logit_offsets")
+    if offsets is not None and not (
+        isinstance(offsets, list)
+        and all(isinstance(x, (int, float)) and math.isfinite(x) for x in offsets)
+        and len(offsets) == int(meta["model_config"].get("num_classes", len(offsets)))
+    ):
+        raise DataError(
+            sidecar, f"calibration.class_logit_offsets must be one finite number per class, got {offsets!r}"
+        )
     return meta
+
+
+def update_calibration(path: str | Path, entries: dict) -> None:
+    """Add ``entries`` to the sidecar's ``calibration`` in place (atomically; the weights and their ``weights_id``
+    stay as they are)."""
+    _, sidecar = checkpoint_paths(path)
+    read_checkpoint_meta(path)  # refuses a sidecar that is not a checkpoint's
+    raw = json.loads(sidecar.read_text())
+    raw["calibration"] = {**(raw.get("calibration") or {}), **entries}
+    tmp = sidecar.with_name(f".{sidecar.name}.tmp-{os.getpid()}")
+    try:
+        tmp.write_text(json.dumps(raw, indent=2, default=_jsonable) + "\n")
+        os.replace(tmp, sidecar)
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
 def read_checkpoint_tensors(path: str | Path) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:

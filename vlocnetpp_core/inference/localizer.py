@@ -19,7 +19,8 @@ Per frame (:meth:`Localizer.step`):
   twist = relative motion / dt in the current camera frame (linear ``R_rel^T t_rel / dt`` m/s,
   angular = rotation vector of ``R_rel`` / dt rad/s); 6x6 covariances from the checkpoint
   calibration; the class-id mask at the resolution of the given image (argmax at network
-  resolution, brought back with exact nearest neighbour), or ``None`` for a pose-only model (no
+  resolution after the calibration's per-class offsets, if any: :mod:`~vlocnetpp_core.inference.class_offsets`;
+  brought back with exact nearest neighbour), or ``None`` for a pose-only model (no
   semantic stream: :attr:`Localizer.has_segmentation` is False).
 
 Temporal state is reset (the next frame is a first frame: global pose from the image alone,
@@ -50,6 +51,7 @@ from vlocnetpp_core import geometry
 from vlocnetpp_core.camera.intrinsics import Intrinsics
 from vlocnetpp_core.errors import UserError
 from vlocnetpp_core.inference.checkpoint import calibration_variances, checkpoint_paths, load_checkpoint
+from vlocnetpp_core.inference.class_offsets import offsets_of
 from vlocnetpp_core.inference.network_input import network_input
 from vlocnetpp_core.inference.pose_fusion import OdometryFusion
 from vlocnetpp_core.inference.preprocess import FrameError, to_rgb
@@ -147,6 +149,8 @@ class Localizer:
         self.num_classes: int = model.config.num_classes
         self.class_names: list[str] = list(meta.get("class_names", []))
         self.default_intrinsics = Intrinsics.from_dict(meta["intrinsics"]).resized(*self.input_size)
+        offsets = offsets_of(meta, self.num_classes)
+        self.class_offsets = None if offsets is None else offsets.to(self.device)[:, None, None]  # (C, 1, 1)
         pose_var, odo_var = calibration_variances(meta)
         self.pose_variance = np.maximum(pose_var, MIN_VARIANCE)
         self.odometry_variance = np.maximum(odo_var, MIN_VARIANCE)
@@ -271,7 +275,7 @@ class Localizer:
             outputs = (out.xyz, out.quat, out.rel_xyz, out.rel_quat, out.seg_logits)
             finite = all(bool(torch.isfinite(v).all()) for v in outputs if v is not None)
             if finite:
-                ids = None if out.seg_logits is None else out.seg_logits[0].argmax(0).to(torch.uint8).cpu().numpy()
+                ids = None if out.seg_logits is None else self._class_ids(out.seg_logits[0])
                 xyz, quat, rel_xyz, rel_quat = (v[0].double().cpu().numpy() for v in outputs[:4])
         if not finite:
             if self.refinement is not None:
@@ -287,6 +291,12 @@ class Localizer:
         return StepInProgress(
             self._network_result(stamp, xyz, quat, rel_xyz, rel_quat, dt, reason), ids, shape, features, start
         )
+
+    def _class_ids(self, scores: torch.Tensor) -> np.ndarray:
+        """``scores (C, H, W)`` -> ``(H, W) uint8`` class ids: the argmax after the calibration's class offsets."""
+        if self.class_offsets is not None:
+            scores = scores.float() + self.class_offsets
+        return scores.argmax(0).to(torch.uint8).cpu().numpy()
 
     def finish(self, step: StepInProgress) -> LocalizerResult:
         """The rest of :meth:`step` for a :meth:`begin`'s result: the class ids at the image's resolution and, with a
