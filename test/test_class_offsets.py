@@ -10,8 +10,10 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 import torch
 
+from vlocnetpp_core.errors import DataError
 from vlocnetpp_core.inference.class_offsets import fit_class_offsets
 from vlocnetpp_core.inference.localizer import Localizer
 
@@ -65,3 +67,8 @@ def test_calibrate_classes_writes_offsets_that_the_localizer_applies(tmp_path):
     ckpt.with_suffix(".json").write_text(json.dumps(sidecar))
     forced = Localizer.from_checkpoint(ckpt).step(image, "rgb8", 0.0)
     assert (forced.mask == 7).all() and not (plain == 7).all()
+
+    sidecar["calibration"]["class_logit_offsets"] = offsets[:9]  # one short: refused, naming the sidecar
+    ckpt.with_suffix(".json").write_text(json.dumps(sidecar))
+    with pytest.raises(DataError, match="class_logit_offsets must be one finite number per class"):
+        Localizer.from_checkpoint(ckpt)

@@ -84,7 +84,7 @@ def save_checkpoint(
     }
     info = build_sidecar(model.config, meta or {})
     info.update(weights=weights.name, weights_id=weights_id, dtype=str(dtype).removeprefix("torch."))
-    text = json.dumps(info, indent=2, default=_jsonable) + "\n"
+    text = _sidecar_text(info)
     tmp_w = weights.with_name(f".{weights.name}.tmp-{os.getpid()}")
     tmp_s = sidecar.with_name(f".{sidecar.name}.tmp-{os.getpid()}")
     try:
@@ -132,6 +132,10 @@ def _complete_calibration(calib: dict) -> dict:
     if defaulted:
         out.setdefault("source", "default")
     return out
+
+
+def _sidecar_text(info: dict) -> str:
+    return json.dumps(info, indent=2, default=_jsonable) + "\n"
 
 
 def _jsonable(obj: Any) -> Any:
@@ -217,7 +221,7 @@ def update_calibration(path: str | Path, entries: dict) -> None:
     raw["calibration"] = {**(raw.get("calibration") or {}), **entries}
     tmp = sidecar.with_name(f".{sidecar.name}.tmp-{os.getpid()}")
     try:
-        tmp.write_text(json.dumps(raw, indent=2, default=_jsonable) + "\n")
+        tmp.write_text(_sidecar_text(raw))
         os.replace(tmp, sidecar)
     finally:
         tmp.unlink(missing_ok=True)

@@ -76,9 +76,10 @@ def fit_class_offsets(scores: torch.Tensor, labels: torch.Tensor) -> tuple[np.nd
     y = labels[keep].numpy()
     logits = scores.float().permute(0, 2, 3, 1)[keep]  # (P, C): the labelled pixels
 
+    names = [str(c) for c in range(num_classes)]
+
     def miou(offsets: np.ndarray) -> float:
         pred = (logits + torch.from_numpy(offsets)).argmax(1).numpy()
-        names = [str(c) for c in range(num_classes)]
         return segmentation_metrics(confusion_matrix(y, pred, num_classes), names)["miou"]
 
     offsets = np.zeros(num_classes, np.float32)
@@ -96,14 +97,11 @@ def fit_class_offsets(scores: torch.Tensor, labels: torch.Tensor) -> tuple[np.nd
     return offsets - offsets.mean(), before, best
 
 
-def offsets_of(meta: dict, num_classes: int) -> torch.Tensor | None:
-    """The checkpoint's ``calibration.class_logit_offsets`` as a ``(C,)`` float32 tensor, or None without them."""
+def offsets_of(meta: dict) -> torch.Tensor | None:
+    """The checkpoint's ``calibration.class_logit_offsets`` (checked by ``read_checkpoint_meta``: one finite number
+    per class) as a ``(C,)`` float32 tensor, or None without them."""
     values = (meta.get("calibration") or {}).get("class_logit_offsets")
-    if values is None:
-        return None
-    if len(values) != num_classes:
-        raise UserError(f"calibration.class_logit_offsets has {len(values)} values for {num_classes} classes")
-    return torch.tensor(values, dtype=torch.float32)
+    return None if values is None else torch.tensor(values, dtype=torch.float32)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -149,7 +149,7 @@ class Localizer:
         self.num_classes: int = model.config.num_classes
         self.class_names: list[str] = list(meta.get("class_names", []))
         self.default_intrinsics = Intrinsics.from_dict(meta["intrinsics"]).resized(*self.input_size)
-        offsets = offsets_of(meta, self.num_classes)
+        offsets = offsets_of(meta)
         self.class_offsets = None if offsets is None else offsets.to(self.device)[:, None, None]  # (C, 1, 1)
         pose_var, odo_var = calibration_variances(meta)
         self.pose_variance = np.maximum(pose_var, MIN_VARIANCE)
