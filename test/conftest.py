@@ -49,6 +49,18 @@ def _colcon() -> str:
     return str(exe) if exe.exists() else (shutil.which("colcon") or "colcon")
 
 
+@pytest.fixture(scope="session", autouse=True)
+def camera_publisher_profile() -> None:
+    """The tests' rclpy nodes publish camera frames as the project's tools do: with the localizer's Fast DDS
+    profile (:class:`vlocnetpp_ros.dds_client.DdsClient`), whose 8 MiB shared-memory segment sends a 640x480 frame
+    whole. With Fast DDS's default 512 KiB segment a best-effort publisher's frames over 512 KiB reach another
+    process only now and then (docs/node.md, "Camera transport"). Fast DDS reads a profile once per process, at
+    its first participant: made here, before any test's."""
+    from vlocnetpp_ros.dds_client import DdsClient
+
+    DdsClient("test_profile", "").close()
+
+
 @pytest.fixture(scope="session")
 def colcon_install(tmp_path_factory) -> Path:
     """Build this repository with colcon (from PyPI) once per session; returns the install prefix.
