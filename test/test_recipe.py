@@ -62,6 +62,7 @@ def _recipe(tmp_path, **changes) -> dict:
             "to": str(tmp_path / "models" / "tiny"),
             "dtype": "float16",
             "reference": ["campus", "wander"],
+            "class_offsets": "campus",
         },
     }
     recipe.update(changes)
@@ -120,6 +121,10 @@ def test_recipe_runs_every_stage_exports_and_resumes(tmp_path, capsys):
     assert {tuple(t) for t in reference.t} == {
         tuple(t) for name in ("campus", "wander") for t in _train_positions(out / "data" / name)
     }
+    # the segmentation's class offsets, fitted on the campus test loop, in the export's calibration
+    calibration = meta["calibration"]
+    assert len(calibration["class_logit_offsets"]) == meta["model_config"]["num_classes"]
+    assert calibration["class_logit_offsets_source"].startswith("mean IoU on campus (test)")
     visits = json.loads((out / "data" / "wander" / "scene.json").read_text())["visits"]
     assert [v["pattern"]["lane_wander"] for v in visits] == [1.0] * 3  # the recipe's synth keys reach the renderer
     assert meta["training"]["data"].endswith("wander")  # the stage's own data
@@ -261,6 +266,10 @@ def test_a_stage_whose_weights_are_last_gives_its_last_checkpoint(tmp_path):
             "export: 'dtype' must be one of float16, float32, got 'bfloat16'",
         ),
         ({"export": {"stage": "loc", "to": "m", "wieghts": "last"}}, "export: unknown key 'wieghts'"),
+        (
+            {"export": {"stage": "loc", "to": "m", "class_offsets": "val"}},
+            "export: 'class_offsets' 'val' is not one of the recipe's datasets",
+        ),
         ({"export": {"stage": "loc", "to": "m", "weights": "final"}}, "export: 'weights' must be one of best, last"),
         (
             {"export": {"stage": "loc", "to": "m", "calibration": {"pose": "loc", "odometry": "vo-x"}}},

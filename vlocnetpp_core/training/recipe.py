@@ -47,7 +47,9 @@ skips finished schedule entries and resumes an interrupted one exactly. The time
 covariance calibration of its validation (or, when it did not validate, of the stages named in ``calibration``:
 ``{pose: STAGE, odometry: STAGE}``), and the retrieval reference of the ``reference`` dataset's
 training images as ``NAME.reference.npz`` (the baseline ``evaluate`` and the demo compare with;
-a list of datasets: all their training images, e.g. every image whose pose the network learnt).
+a list of datasets: all their training images, e.g. every image whose pose the network learnt), and, with
+``class_offsets: DATASET``, the segmentation's per-class offsets fitted on that dataset's test split (validation
+visits; :mod:`vlocnetpp_core.inference.class_offsets`).
 """
 
 from __future__ import annotations
@@ -66,7 +68,7 @@ RECIPE_KEYS = ("config", "datasets", "defaults", "stages", "export")
 STAGE_KEYS = ("name", "stage", "schedule", "init", "data", "val_data", "continue", "config", "weights")
 SET_BY_RECIPE = ("out", "steps", "epochs", "lr", "lr_end", "resume", "restart", "no_progress")
 WEIGHTS = ("best", "last")
-EXPORT_KEYS = ("stage", "weights", "to", "dtype", "reference", "calibration")
+EXPORT_KEYS = ("stage", "weights", "to", "dtype", "reference", "calibration", "class_offsets")
 EXPORT_DTYPES = ("float16", "float32")
 CALIBRATION_KINDS = ("pose", "odometry")
 
@@ -238,6 +240,11 @@ def _export(export, names: list, datasets: dict, path: Path) -> dict | None:
                 f"({', '.join(datasets) or 'none'})"
             )
         export = {**export, "reference": references}
+    if "class_offsets" in export and export["class_offsets"] not in datasets:
+        raise UserError(
+            f"{where}: 'class_offsets' {export['class_offsets']!r} is not one of the recipe's datasets "
+            f"({', '.join(datasets) or 'none'})"
+        )
     if not isinstance(export.get("to"), str):
         raise UserError(f"{where}: 'to' (the path of the exported weights, NAME) is required")
     return export
