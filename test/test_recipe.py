@@ -270,6 +270,10 @@ def test_a_stage_whose_weights_are_last_gives_its_last_checkpoint(tmp_path):
             {"export": {"stage": "loc", "to": "m", "class_offsets": "val"}},
             "export: 'class_offsets' 'val' is not one of the recipe's datasets",
         ),
+        (
+            {"export": {"stage": "loc", "to": "m", "class_offsets": ["campus"]}},
+            "export: 'class_offsets' ['campus'] is not one of the recipe's datasets",
+        ),
         ({"export": {"stage": "loc", "to": "m", "weights": "final"}}, "export: 'weights' must be one of best, last"),
         (
             {"export": {"stage": "loc", "to": "m", "calibration": {"pose": "loc", "odometry": "vo-x"}}},

@@ -240,9 +240,10 @@ def _export(export, names: list, datasets: dict, path: Path) -> dict | None:
                 f"({', '.join(datasets) or 'none'})"
             )
         export = {**export, "reference": references}
-    if "class_offsets" in export and export["class_offsets"] not in datasets:
+    offsets = export.get("class_offsets")
+    if offsets is not None and (not isinstance(offsets, str) or offsets not in datasets):
         raise UserError(
-            f"{where}: 'class_offsets' {export['class_offsets']!r} is not one of the recipe's datasets "
+            f"{where}: 'class_offsets' {offsets!r} is not one of the recipe's datasets "
             f"({', '.join(datasets) or 'none'})"
         )
     if not isinstance(export.get("to"), str):
