@@ -23,7 +23,17 @@ from vlocnetpp_core.training.recipe import load_recipe, stage_commands, stage_co
 from vlocnetpp_core.training.recipe_run import run_recipe
 
 VO = {"name": "vo", "stage": "stl-vo", "schedule": [{"steps": 2, "lr": 1e-3}]}
-WANDER = {"synth": {"seed": 0, "loops": 3, "test_loops": 0, "frames_per_loop": 8, "size": [64, 48], "lane_wander": 1.0}}
+WANDER = {
+    "synth": {
+        "seed": 0,
+        "loops": 3,
+        "test_loops": 0,
+        "frames_per_loop": 8,
+        "size": [64, 48],
+        "lane_wander": 1.0,
+        "lighting": ["overcast", "noon"],
+    }
+}
 
 
 def _recipe(tmp_path, **changes) -> dict:
@@ -127,6 +137,7 @@ def test_recipe_runs_every_stage_exports_and_resumes(tmp_path, capsys):
     assert calibration["class_logit_offsets_source"].startswith("mean IoU on campus (test)")
     visits = json.loads((out / "data" / "wander" / "scene.json").read_text())["visits"]
     assert [v["pattern"]["lane_wander"] for v in visits] == [1.0] * 3  # the recipe's synth keys reach the renderer
+    assert {v["lighting"]["name"] for v in visits} == {"overcast", "noon"}
     assert meta["training"]["data"].endswith("wander")  # the stage's own data
 
     recipe = load_recipe(path)

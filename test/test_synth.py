@@ -156,6 +156,28 @@ def test_lane_wander_drifts_across_the_road_and_changes_nothing_else():
     )
 
 
+def test_lighting_presets_choose_the_visits_lighting_and_nothing_else():
+    """``lighting_presets``: train visits cycle through the list (a preset named twice comes twice as often), test
+    visits draw from it; the pattern and poses stay; all five presets in their order are the default's train visits."""
+    campus = Campus("campus")
+    presets = ("morning", "morning", "evening")
+    train = [plan_visit(campus, 4, "train", k, 20, lighting_presets=presets) for k in range(6)]
+    names = [v.lighting.name for v in train]
+    assert sorted(names) == ["evening", "evening", "morning", "morning", "morning", "morning"]
+    assert names[:3] in (list(presets), ["morning", "evening", "morning"], ["evening", "morning", "morning"])
+    plain = plan_visit(campus, 4, "train", 3, 20)
+    assert train[3].pattern == plain.pattern
+    np.testing.assert_array_equal(train[3].t, plain.t)
+    tests = {plan_visit(campus, 4, "test", k, 20, lighting_presets=("hazy", "noon")).lighting.name for k in range(8)}
+    assert tests == {"hazy", "noon"}
+    from vlocnetpp_core.synth.lighting import PRESETS
+
+    for k in range(5):
+        assert plan_visit(campus, 4, "train", k, 20, lighting_presets=PRESETS).lighting == (
+            plan_visit(campus, 4, "train", k, 20).lighting
+        )
+
+
 @pytest.mark.parametrize(
     "bad",
     [
@@ -168,6 +190,8 @@ def test_lane_wander_drifts_across_the_road_and_changes_nothing_else():
         dict(test_lane_offset=float("nan")),
         dict(lane_wander=-1.0),
         dict(lane_wander=float("inf")),
+        dict(lighting_presets=("dusk",)),
+        dict(lighting_presets=()),
     ],
 )
 def test_bad_arguments_are_user_errors(tmp_path, bad):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -31,6 +32,7 @@ def test_help_lists_the_options(capsys):
         "--size",
         "--force",
         "--frame-interval",
+        "--lighting",
     ):
         assert flag in text
 
@@ -49,6 +51,8 @@ def test_renders_and_prints_one_summary_line(tmp_path, capsys):
             "3",
             "--size",
             "64x36",
+            "--lighting",
+            "overcast",
             "--no-progress",
         ]
     )
@@ -56,6 +60,8 @@ def test_renders_and_prints_one_summary_line(tmp_path, capsys):
     lines = capsys.readouterr().out.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith(f"wrote {out}: 1 train + 1 test loops, 6 frames at 64x36")
     assert len(list(out.glob("DeepLoc/*/LeftImages/*.png"))) == 6
+    visits = json.loads((out / "scene.json").read_text())["visits"]
+    assert [v["lighting"]["name"] for v in visits] == ["overcast", "overcast"]
     assert (
         cli.main(["synth", str(out), "--loops", "1", "--frames-per-loop", "3", "--size", "64x36", "--no-progress"]) == 2
     )
@@ -68,6 +74,7 @@ def test_renders_and_prints_one_summary_line(tmp_path, capsys):
         (["--size", "64by36"], "WIDTHxHEIGHT"),
         (["--size", "4x4"], "--size"),
         (["--frames-per-loop", "0"], "--frames-per-loop"),
+        (["--lighting", "noon,dusk"], "--lighting must name presets among"),
     ],
 )
 def test_bad_flags_give_one_line(tmp_path, capsys, args, words):

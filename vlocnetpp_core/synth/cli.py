@@ -73,6 +73,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="let every train loop drift slowly up to this far either side of its lane (e.g. 1.5: the train "
         "loops then cover the road between the lanes; default: 0, keep to the lane)",
     )
+    parser.add_argument(
+        "--lighting",
+        default="",
+        metavar="PRESET[,PRESET...]",
+        help="lighting presets of the visits (noon, morning, evening, overcast, hazy): train loops cycle through "
+        "them, test loops draw from them; a preset named twice comes twice as often (default: all five)",
+    )
     parser.add_argument("--force", action="store_true", help="replace OUT if it exists")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
@@ -94,6 +101,7 @@ def run(args: argparse.Namespace) -> int:
         frame_interval=args.frame_interval,
         test_lane_offset=args.test_lane_offset,
         lane_wander=args.lane_wander,
+        lighting_presets=tuple(args.lighting.split(",")) if args.lighting else None,
     )
     w, h = s["size"]
     print(

@@ -147,6 +147,7 @@ def plan_visit(
     frame_interval: float | None = None,
     lane_offset: float | None = None,
     lane_wander: float = 0.0,
+    lighting_presets: tuple[str, ...] | None = None,
 ) -> Visit:
     """The ``loop``-th visit of ``split`` for ``seed``: ``frames`` camera poses plus lighting and movers.
 
@@ -154,7 +155,8 @@ def plan_visit(
     to drive between the lanes that training visits use; everything else about the visit is unchanged.
     ``lane_wander`` (metres) lets the visit drift slowly up to that far either side of its lane (over
     :data:`WANDER_WAVELENGTHS_M`, never beyond :data:`MAX_LANE_OFFSET_M`), so that visits cover the
-    road between the lanes; 0 leaves the visit exactly as without it.
+    road between the lanes; 0 leaves the visit exactly as without it. ``lighting_presets``: the presets that train
+    visits cycle through and test visits draw from (repeats weigh a preset more); None: every preset once.
     """
     if split not in SPLIT_CODES:
         raise ValueError(f"split must be train or test, got {split!r}")
@@ -167,7 +169,12 @@ def plan_visit(
     lateral = LANES[pattern.lane] if lane_offset is None else float(lane_offset)
     if lane_offset is not None:
         pattern = replace(pattern, lane=f"offset {lateral:+.2f} m")
-    lighting = sample_lighting(rng, PRESETS[(loop + offset) % len(PRESETS)] if split == "train" else None)
+    choices = PRESETS if lighting_presets is None else tuple(lighting_presets)
+    if split == "train":
+        preset = choices[(loop + offset) % len(choices)]
+    else:  # the default draws inside sample_lighting: visits rendered before this option stay as they were
+        preset = None if lighting_presets is None else str(rng.choice(choices))
+    lighting = sample_lighting(rng, preset)
     base = campus.circuits[pattern.circuit]
     if pattern.clockwise:
         base = base.reversed()

@@ -33,6 +33,7 @@ from vlocnetpp_core.errors import UserError
 from vlocnetpp_core.outputs import atomic_output_dir
 from vlocnetpp_core.synth.campus import load_campus
 from vlocnetpp_core.synth.drive import MAX_LANE_OFFSET_M, plan_visit
+from vlocnetpp_core.synth.lighting import PRESETS
 from vlocnetpp_core.synth.preview import mosaic, top_down_map
 from vlocnetpp_core.synth.render import render_frame
 
@@ -61,6 +62,7 @@ def check_render_args(
     size,
     frame_interval,
     lane_wander: float = 0.0,
+    lighting_presets: tuple[str, ...] | None = None,
 ) -> tuple[int, int]:
     """``(width, height)`` of ``size``; :class:`UserError` naming the flag of the first bad argument."""
     if not isinstance(scene, str) or not re.fullmatch(r"[A-Za-z0-9_.-]{1,64}", scene):
@@ -83,6 +85,12 @@ def check_render_args(
         raise UserError(f"--frame-interval must be positive, got {frame_interval}")
     if not (math.isfinite(lane_wander) and 0 <= lane_wander <= MAX_LANE_OFFSET_M):
         raise UserError(f"--lane-wander must be within 0 and {MAX_LANE_OFFSET_M:g} m, got {lane_wander}")
+    if lighting_presets is not None:
+        unknown = [name for name in lighting_presets if name not in PRESETS]
+        if unknown or not lighting_presets:
+            raise UserError(
+                f"--lighting must name presets among {', '.join(PRESETS)}, got {','.join(lighting_presets) or 'none'}"
+            )
     return w, h
 
 
@@ -99,6 +107,7 @@ def render_dataset(
     frame_interval: float | None = None,
     test_lane_offset: float | None = None,
     lane_wander: float = 0.0,
+    lighting_presets: tuple[str, ...] | None = None,
 ) -> dict:
     """Render ``train_loops`` + ``test_loops`` visits of campus ``scene`` into ``out``; returns a summary dict.
 
@@ -106,10 +115,13 @@ def render_dataset(
     default each loop's frames are spread over one lap of its circuit. ``test_lane_offset``
     (metres right of the centreline, at most :data:`MAX_LANE_OFFSET_M` either way) drives the test
     loops there instead of in one of the four lanes. ``lane_wander`` (metres) lets every train loop
-    drift slowly up to that far either side of its lane (``plan_visit``). Raises :class:`UserError` for bad arguments or
+    drift slowly up to that far either side of its lane (``plan_visit``); ``lighting_presets`` the lighting presets
+    of the visits (``plan_visit``; None: all). Raises :class:`UserError` for bad arguments or
     an existing ``out`` without ``force``.
     """
-    w, h = check_render_args(scene, seed, train_loops, test_loops, frames_per_loop, size, frame_interval, lane_wander)
+    w, h = check_render_args(
+        scene, seed, train_loops, test_loops, frames_per_loop, size, frame_interval, lane_wander, lighting_presets
+    )
     if test_lane_offset is not None and not (
         math.isfinite(test_lane_offset) and abs(test_lane_offset) <= MAX_LANE_OFFSET_M
     ):
@@ -131,6 +143,7 @@ def render_dataset(
             frame_interval,
             test_lane_offset,
             lane_wander,
+            lighting_presets,
         )
     summary["out"] = str(out)
     return summary
@@ -148,6 +161,7 @@ def _render_into(
     frame_interval: float | None,
     test_lane_offset: float | None = None,
     lane_wander: float = 0.0,
+    lighting_presets: tuple[str, ...] | None = None,
 ) -> dict:
     from tqdm import tqdm
 
@@ -186,6 +200,7 @@ def _render_into(
                     frame_interval,
                     None if train else test_lane_offset,
                     lane_wander if train else 0.0,
+                    lighting_presets,
                 )
                 info = visit.info()
                 info["first_id"] = loop * ID_STRIDE + 1

@@ -128,7 +128,7 @@ def stage_datasets(stage: Stage) -> list[str]:
     return [name for name in (stage.data, stage.val_data) if name is not None]
 
 
-SYNTH_KEYS = ("scene", "seed", "loops", "test_loops", "frames_per_loop", "size", "lane_wander")
+SYNTH_KEYS = ("scene", "seed", "loops", "test_loops", "frames_per_loop", "size", "lane_wander", "lighting")
 
 
 def synth_args(synth: dict | None, where: str) -> dict:
@@ -148,7 +148,12 @@ def synth_args(synth: dict | None, where: str) -> dict:
         for key in SYNTH_KEYS:
             default = parser.get_default(key)
             value = synth.get(key, default)
-            args[key] = "x".join(str(int(v)) for v in value) if key == "size" else type(default)(value)
+            if key == "size":
+                args[key] = "x".join(str(int(v)) for v in value)
+            elif key == "lighting" and isinstance(value, list):  # a YAML list of presets
+                args[key] = ",".join(map(str, value))
+            else:
+                args[key] = type(default)(value)
     except (TypeError, ValueError) as err:
         raise UserError(f"{where}: bad synth value ({err})") from None
     return args
