@@ -20,7 +20,7 @@ from vlocnetpp_core.inference.checkpoint import read_checkpoint_meta
 from vlocnetpp_core.model import load_model_config
 from vlocnetpp_core.training.config import TrainConfig
 from vlocnetpp_core.training.recipe import load_recipe, stage_commands, stage_configs, stage_weights
-from vlocnetpp_core.training.recipe_run import run_recipe
+from vlocnetpp_core.training.recipe_run import recipe_jobs, run_recipe
 
 VO = {"name": "vo", "stage": "stl-vo", "schedule": [{"steps": 2, "lr": 1e-3}]}
 WANDER = {
@@ -341,6 +341,16 @@ def test_a_failing_stage_names_its_log(tmp_path, capsys):
 def test_train_without_recipe_needs_config_data_and_stage(tmp_path, capsys):
     assert cli(["train", "--out", str(tmp_path / "run"), "--config", "lite"]) == 2
     assert "--data, --stage required (or --recipe FILE)" in capsys.readouterr().err
+
+
+def test_each_dataset_is_considered_just_before_the_first_stage_that_takes_it(tmp_path):
+    """A render never takes a core before an earlier stage: `wander` (first taken by `loc`) comes after `vo` and
+    `seg`, and a dataset only the export takes (`classes`) comes last."""
+    datasets = {"campus": WANDER, "wander": WANDER, "classes": WANDER}
+    export = {"stage": "loc", "to": str(tmp_path / "m"), "class_offsets": "classes"}
+    recipe = load_recipe(_recipe(tmp_path, datasets=datasets, export=export))
+    names = [job.name for job in recipe_jobs(recipe, tmp_path / "run")]
+    assert names == ["dataset campus", "vo", "seg", "dataset wander", "loc", "seg-more", "dataset classes"]
 
 
 @pytest.mark.parametrize("name", ["shipped", "own_robot"])

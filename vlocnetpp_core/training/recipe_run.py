@@ -1,16 +1,16 @@
-"""Running a recipe (``vlocnetpp train --recipe FILE --out DIR``): its datasets and stages as soon as they can
-start, then its export. The file format and each stage's commands: :mod:`vlocnetpp_core.training.recipe`.
+"""Running a recipe (``vlocnetpp train --recipe FILE --out DIR``): its datasets and stages as soon as they can start,
+then its export. The file format and each stage's commands: :mod:`vlocnetpp_core.training.recipe`.
 
 Every dataset still to render (``vlocnetpp synth``, one core each) and every stage (``vlocnetpp train``, on its
-``threads``) is a job: its own process, scheduled on the machine's cores. The datasets come first, those of the
-earliest stages first (longest first among equals); a stage starts (in file order) once its datasets are
-rendered, every stage it takes weights from (``init``, ``continue``) has finished and its ``threads`` fit in
-the cores the running jobs leave free (one that asks for more than there are starts alone). So a stage may
-start while a later stage's dataset still renders, and a later stage beside an earlier one that still runs,
-e.g. ``stl-vo`` beside ``stl-seg`` once ``stl-loc-trunk`` is done. When a job fails no other starts; the
-running ones finish, then the run stops naming the failed jobs' logs and their last lines. Ctrl-C or SIGTERM
-interrupts every running job too. Every job's wall time (an interrupted one's up to the interruption) and the
-whole run's are added to ``DIR/timings.json`` and printed, so a resumed run sums its parts.
+``threads``) is a job: its own process, scheduled on the machine's cores. Each dataset comes just before the first
+stage that takes it (longest first among equals; those no stage takes, last), so that no render delays an earlier
+stage; a job starts (in that order) once its datasets are rendered, every stage it takes weights from (``init``,
+``continue``) has finished and its ``threads`` fit in the cores the running jobs leave free (one that asks for more
+than there are starts alone). So a stage may start while a later stage's dataset still renders, and a later stage
+beside an earlier one that still runs, e.g. ``stl-vo`` beside ``stl-seg`` once ``stl-loc-trunk`` is done. When a job
+fails no other starts; the running ones finish, then the run stops naming the failed jobs' logs and their last
+lines. Ctrl-C or SIGTERM interrupts every running job too. Every job's wall time (an interrupted one's up to the
+interruption) and the whole run's are added to ``DIR/timings.json`` and printed, so a resumed run sums its parts.
 """
 
 from __future__ import annotations
@@ -76,8 +76,8 @@ class Job:
 
 
 def recipe_jobs(recipe: Recipe, out: Path, python: str = sys.executable) -> list[Job]:
-    """The recipe's jobs in the order they are considered: datasets (those of the earliest stages first), then
-    stages."""
+    """The recipe's jobs in the order they are considered: the stages in file order, each after the datasets it
+    is the first to take (the longest first); last, the datasets no stage takes (the export's)."""
     first_use = {}
     for k, stage in enumerate(recipe.stages):
         for name in stage_datasets(stage):
@@ -104,9 +104,10 @@ def recipe_jobs(recipe: Recipe, out: Path, python: str = sys.executable) -> list
                 ),
             )
         )
-    jobs = [job for *_, job in sorted(renders, key=lambda r: r[:2])]
-    rendered = {job.name for job in jobs}
-    for stage in recipe.stages:
+    rendered = {job.name for *_, job in renders}
+    jobs = []
+    for k, stage in enumerate(recipe.stages):
+        jobs += [job for _, _, job in sorted((r for r in renders if r[0] == k), key=lambda r: r[1])]
         inputs = set(stage.init) | ({stage.continues} if stage.continues else set())
         inputs |= {f"dataset {name}" for name in stage_datasets(stage)} & rendered
         threads = stage_threads(stage)
@@ -120,7 +121,7 @@ def recipe_jobs(recipe: Recipe, out: Path, python: str = sys.executable) -> list
                 f"{stage.stage} to step {stage.steps} on {threads} thread{'s' * (threads > 1)}",
             )
         )
-    return jobs
+    return jobs + [job for _, _, job in sorted((r for r in renders if r[0] == len(recipe.stages)), key=lambda r: r[1])]
 
 
 def stage_datasets(stage: Stage) -> list[str]:
