@@ -28,18 +28,19 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-# 0 trains, 11 validates the shipped model; 101, 7, 23, 42 ranked the recipe (docs/results.md); 5, 202 the tests'
+# 0 and 2 train, 11 validates the shipped model; 101, 7, 23, 42 ranked the recipe (docs/results.md); 5, 202 the tests'
 # visits; 791569, 835667, 943975, 479491 chose the odometry fusion's constants with 11; the verdicts (docs/results.md):
 # never drawn again, so the next verdict is on other visits
 # fmt: off
-SPENT = {0, 1, 5, 7, 11, 23, 42, 101, 202,  # 1: the visits of an experiment (2026-12-07, fourth)
+SPENT = {0, 1, 2, 5, 7, 11, 23, 42, 101, 202,  # 1: an experiment's visits (2026-12-07, fourth); 2: campus-more's
          307008, 445811, 936886, 733135, 107868, 370004, 177925, 600629,  # refinement, EPnP (2026-12-20)
          740804, 762581, 939547, 526530, 342913, 570627, 193802, 711590,  # refinement, AP3P (2026-12-06)
          684805, 794529, 695689, 164404, 978398, 877148, 728843, 306382,  # AP3P, inliers again (2026-12-06)
          791569, 835667, 943975, 479491,  # validation of the odometry fusion's constants (2026-12-07)
          419167, 913411, 340430, 244380, 161928, 817369, 153345, 526595,  # the fusion's verdict (2026-12-07)
          165582, 241377, 62239, 506526, 568621, 838749, 157573, 928725,  # the bias filter's verdict (2026-12-07)
-         272040, 910218, 51986, 173264, 300494, 856423, 110790, 28160}  # the class offsets' verdict (2026-12-08)
+         272040, 910218, 51986, 173264, 300494, 856423, 110790, 28160,  # the class offsets' verdict (2026-12-08)
+         815376, 541657, 463874, 194182, 18706, 190116, 765370, 825119}  # stl-vo-more's verdict (2026-12-08)
 # fmt: on
 COLUMNS = [
     ("t [m]", "pose", "median_translation_m", 1, "{:.3f}"),

@@ -149,6 +149,18 @@ def test_recipe_runs_every_stage_exports_and_resumes(tmp_path, capsys):
         again.pop("recipe (end to end)") >= timings.pop("recipe (end to end)") and again == timings
     )  # only the export again
 
+    # a recipe on this one (its base) run into the same folder trains only its own stage and exports nothing
+    arm = tmp_path / "arm.yaml"
+    own = {"name": "loc-arm", "stage": "stl-loc", "init": ["vo"], "config": "tiny_direct.yaml", "s_q_init": 0}
+    arm.write_text(yaml.safe_dump({"base": path.name, "stages": [{**own, "schedule": [{"steps": 2, "lr": 1e-3}]}]}))
+    exported = (tmp_path / "models" / "tiny.safetensors").stat().st_mtime_ns
+    assert cli(["train", "--recipe", str(arm), "--out", str(out)]) == 0
+    assert [m.split("] ")[1].split(":")[0] for m in capsys.readouterr().out.splitlines() if "start " in m] == [
+        "start loc-arm"
+    ]
+    assert (tmp_path / "models" / "tiny.safetensors").stat().st_mtime_ns == exported
+    assert read_checkpoint_meta(out / "loc-arm" / "last")["model_config"]["global_pose_anchors"] == 0
+
 
 def test_recipe_resumes_an_unfinished_schedule(tmp_path):
     path, out = _recipe(tmp_path), tmp_path / "run"
@@ -186,6 +198,32 @@ def test_a_restart_entry_restarts_once_then_resumes(tmp_path):
     stages[2]["schedule"][0]["restart"] = "yes"
     with pytest.raises(UserError, match="restart: true"):
         load_recipe(_recipe(tmp_path, stages=stages))
+
+
+def test_a_recipe_on_a_base_runs_the_bases_stages_as_the_base_does_then_its_own(tmp_path):
+    """`base: FILE`: the base's datasets, defaults and stages (each stage's train configs exactly the base's, its
+    model config included), then the file's own stages with its defaults over the base's; not the base's export."""
+    base = load_recipe(_recipe(tmp_path))
+    arm = tmp_path / "arm.yaml"
+    arm.write_text(
+        yaml.safe_dump(
+            {
+                "base": "recipe.yaml",
+                "config": "lite",
+                "datasets": {"more": WANDER},
+                "defaults": {"batch_size": 4},
+                "stages": [{**VO, "name": "vo-more", "init": ["vo"], "data": "more"}],
+            }
+        )
+    )
+    recipe, out = load_recipe(arm), tmp_path / "run"
+    assert [s.name for s in recipe.stages] == ["vo", "seg", "loc", "seg-more", "vo-more"]
+    assert set(recipe.datasets) == {"campus", "wander", "more"} and recipe.export is None
+    for ours, theirs in zip(recipe.stages, base.stages, strict=False):
+        assert stage_configs(ours, recipe, out) == stage_configs(theirs, base, out)
+    (more,) = stage_configs(recipe.stages[-1], recipe, out)
+    assert (more.batch_size, more.val_every, more.config) == (4, 2, "lite")  # its defaults over the base's
+    assert more.init == (str(out / "vo" / "best.safetensors"),) and more.data == str(out / "data" / "more")
 
 
 def test_a_stage_whose_weights_are_last_gives_its_last_checkpoint(tmp_path):
@@ -238,6 +276,8 @@ def test_a_stage_whose_weights_are_last_gives_its_last_checkpoint(tmp_path):
             "a dataset is {synth: {...}} (rendered) or {path: DIR}",
         ),
         ({"export": {"stage": "mtl"}}, "export stage 'mtl'"),
+        ({"base": "recipe.yaml"}, "base 'recipe.yaml' is this recipe or one of its own bases (a cycle)"),
+        ({"base": "nope.yaml"}, "base 'nope.yaml' is not a recipe file next to this one"),
         (
             {"export": {"stage": "loc", "reference": ["campus", "nope"]}},
             "export reference 'nope' is not one of the recipe's datasets",
@@ -353,7 +393,7 @@ def test_each_dataset_is_considered_just_before_the_first_stage_that_takes_it(tm
     assert names == ["dataset campus", "vo", "seg", "dataset wander", "loc", "seg-more", "dataset classes"]
 
 
-@pytest.mark.parametrize("name", ["shipped", "own_robot"])
+@pytest.mark.parametrize("name", ["shipped", "own_robot", "multitask_arms"])
 def test_the_shipped_recipes_give_valid_train_commands(name, tmp_path):
     """Every stage of config/recipes/NAME.yaml is a `vlocnetpp train --train-config FILE` command, with its inits."""
     from conftest import REPO
@@ -372,7 +412,12 @@ def test_the_shipped_recipes_give_valid_train_commands(name, tmp_path):
             assert [str(stage_weights(recipe, ref, tmp_path)) + ".safetensors" for ref in stage.init] == list(
                 config.init
             )
-    assert recipe.export["stage"] == recipe.stages[-1].name
+    if name == "multitask_arms":  # the shipped recipe's stages and run folder, its arms after them; no export
+        assert recipe.export is None and [s.name for s in recipe.stages[:7]] == [
+            s.name for s in load_recipe(REPO / "config" / "recipes" / "shipped.yaml").stages
+        ]
+    else:
+        assert recipe.export["stage"] == recipe.stages[-1].name
 
 
 @pytest.mark.parametrize("config", ["lite", "lite_pose"])

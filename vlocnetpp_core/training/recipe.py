@@ -31,6 +31,12 @@ that learns a shared trunk with another head), and any other key of
 ``frame_strides``, ``s_q_init``, ``val_split``, ...; lists as YAML lists) except those the recipe sets itself
 (:data:`SET_BY_RECIPE`). ``defaults`` gives keys every stage shares.
 
+``base: FILE`` (a recipe next to this one): this recipe is that one's datasets, defaults and stages, exactly as the
+base runs them (their model config included), then its own stages (which may take weights from the base's), with
+its datasets and defaults over the base's and its ``config`` for its own stages; the base's export is not taken.
+Run into the base's run folder it trains only its own stages, e.g. ablation arms beside a finished recipe
+(``config/recipes/multitask_arms.yaml``).
+
 :func:`load_recipe` checks the whole file before anything runs: every key (unknown ones are named with their
 stage), every value (each schedule entry becomes a ``TrainConfig``, checked as ``vlocnetpp train`` checks its
 flags, the model config included), the stage order (``init`` and ``continue`` name earlier stages, so there is no
@@ -55,7 +61,7 @@ visits; :mod:`vlocnetpp_core.inference.class_offsets`).
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -64,7 +70,7 @@ import yaml
 from vlocnetpp_core.errors import UserError
 from vlocnetpp_core.training.config import ConfigError, TrainConfig
 
-RECIPE_KEYS = ("config", "datasets", "defaults", "stages", "export")
+RECIPE_KEYS = ("base", "config", "datasets", "defaults", "stages", "export")
 STAGE_KEYS = ("name", "stage", "schedule", "init", "data", "val_data", "continue", "config", "weights")
 SET_BY_RECIPE = ("out", "steps", "epochs", "lr", "lr_end", "resume", "restart", "no_progress")
 WEIGHTS = ("best", "last")
@@ -111,26 +117,32 @@ class Recipe:
     datasets: dict[str, dict]
     stages: list[Stage]
     export: dict | None
+    defaults: dict[str, Any] = field(default_factory=dict)  # the keys this file's stages share (over its base's)
 
 
-def load_recipe(path: str | Path) -> Recipe:
+def load_recipe(path: str | Path, _chain: tuple[Path, ...] = ()) -> Recipe:
     """Parse and check a whole recipe file (module doc); ``UserError`` naming the file, the stage and the key."""
     path = Path(path)
     try:
         raw = yaml.safe_load(path.read_text())
     except (OSError, yaml.YAMLError) as err:
         raise UserError(f"{path}: cannot read the recipe ({err})") from None
-    if not isinstance(raw, dict) or "stages" not in raw or "config" not in raw:
-        raise UserError(f"{path}: a recipe is a mapping with at least 'config' and 'stages'")
+    if not isinstance(raw, dict) or "stages" not in raw or not ({"config", "base"} & set(raw)):
+        raise UserError(f"{path}: a recipe is a mapping with at least 'config' (or 'base') and 'stages'")
     _known(raw, RECIPE_KEYS, f"{path}")
-    datasets = raw.get("datasets") or {}
-    if not isinstance(datasets, dict) or not isinstance(raw["stages"], list):
+    base = _base_recipe(raw, path, _chain)
+    if not isinstance(raw.get("datasets") or {}, dict) or not isinstance(raw["stages"], list):
         raise UserError(f"{path}: 'datasets' is a mapping of names and 'stages' a list")
+    datasets = {**base.datasets, **(raw.get("datasets") or {})}
     defaults = _keys(raw.get("defaults") or {}, f"{path}: defaults")
     _known(defaults, (*STAGE_KEYS, *TrainConfig.keys()), f"{path}: defaults", SET_BY_RECIPE)
-    names = [entry.get("name") if isinstance(entry, dict) else None for entry in raw["stages"]]
-    stages = [_stage(entry, k, names, defaults, datasets, path) for k, entry in enumerate(raw["stages"])]
-    recipe = Recipe(path, str(raw["config"]), datasets, stages, None)
+    defaults = {**base.defaults, **defaults}
+    names = [s.name for s in base.stages] + [e.get("name") if isinstance(e, dict) else None for e in raw["stages"]]
+    first = len(base.stages)
+    stages = base.stages + [
+        _stage(entry, first + k, names, defaults, datasets, path) for k, entry in enumerate(raw["stages"])
+    ]
+    recipe = Recipe(path, str(raw.get("config", base.config)), datasets, stages, None, defaults)
     for k, stage in enumerate(stages):  # every schedule entry as the TrainConfig it runs
         try:
             stage_configs(stage, recipe, Path("OUT"), done=-1)
@@ -139,6 +151,21 @@ def load_recipe(path: str | Path) -> Recipe:
         except UserError as err:
             raise UserError(f"{path}: stage {k} ({stage.name}): {err}") from None
     recipe.export = _export(raw.get("export"), names, datasets, path)
+    return recipe
+
+
+def _base_recipe(raw: dict, path: Path, chain: tuple[Path, ...]) -> Recipe:
+    """The recipe ``raw['base']`` names (a file relative to ``path``), checked, without its export; an empty one
+    when there is no ``base``."""
+    if "base" not in raw:
+        return Recipe(path, "", {}, [], None)
+    base = (path.parent / str(raw["base"])).resolve()
+    if base in chain or base == path.resolve():
+        raise UserError(f"{path}: base '{raw['base']}' is this recipe or one of its own bases (a cycle)")
+    if not base.is_file():
+        raise UserError(f"{path}: base '{raw['base']}' is not a recipe file next to this one ({base})")
+    recipe = load_recipe(base, (*chain, path.resolve()))
+    recipe.stages = [replace(stage, config=stage.config or recipe.config) for stage in recipe.stages]
     return recipe
 
 
