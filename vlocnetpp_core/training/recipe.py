@@ -143,7 +143,8 @@ def load_recipe(path: str | Path, _chain: tuple[Path, ...] = ()) -> Recipe:
         _stage(entry, first + k, names, defaults, datasets, path) for k, entry in enumerate(raw["stages"])
     ]
     recipe = Recipe(path, str(raw.get("config", base.config)), datasets, stages, None, defaults)
-    for k, stage in enumerate(stages):  # every schedule entry as the TrainConfig it runs
+    # every schedule entry of this file's stages as the TrainConfig it runs (the base's: checked by its own load)
+    for k, stage in enumerate(stages[first:], first):
         try:
             stage_configs(stage, recipe, Path("OUT"), done=-1)
         except ConfigError as err:

@@ -104,10 +104,15 @@ def recipe_jobs(recipe: Recipe, out: Path, python: str = sys.executable) -> list
                 ),
             )
         )
+    renders.sort(key=lambda r: r[:2])  # by the stage that first takes them, the longest first
+
+    def first_taken_by(k: int) -> list[Job]:
+        return [job for first, _, job in renders if first == k]
+
     rendered = {job.name for *_, job in renders}
     jobs = []
     for k, stage in enumerate(recipe.stages):
-        jobs += [job for _, _, job in sorted((r for r in renders if r[0] == k), key=lambda r: r[1])]
+        jobs += first_taken_by(k)
         inputs = set(stage.init) | ({stage.continues} if stage.continues else set())
         inputs |= {f"dataset {name}" for name in stage_datasets(stage)} & rendered
         threads = stage_threads(stage)
@@ -121,7 +126,7 @@ def recipe_jobs(recipe: Recipe, out: Path, python: str = sys.executable) -> list
                 f"{stage.stage} to step {stage.steps} on {threads} thread{'s' * (threads > 1)}",
             )
         )
-    return jobs + [job for _, _, job in sorted((r for r in renders if r[0] == len(recipe.stages)), key=lambda r: r[1])]
+    return jobs + first_taken_by(len(recipe.stages))
 
 
 def stage_datasets(stage: Stage) -> list[str]:
